@@ -1,0 +1,1 @@
+"""Shared maths and I/O of the manifoldneus pipeline (stages live in ``stages/``)."""

@@ -1,0 +1,210 @@
+"""Cameras and poses: the one module that owns the project's conventions.
+
+Conventions (used everywhere else, restated nowhere else):
+
+* Camera frame: OpenCV. x right, y down, z forward (the camera looks along +z).
+* Pixel coordinates: (u, v) with the centre of the top-left pixel at (0.5, 0.5);
+  a ray through pixel (col, row) passes through (col + 0.5, row + 0.5).
+* Intrinsics ``K``: 3x3, ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` in pixels.
+* A pose is stored **world-to-camera** unless its name says otherwise:
+  ``w2c`` is ``[R | t]`` (3x4, or 4x4 with last row 0 0 0 1) and maps
+  ``x_cam = R @ x_world + t``. ``c2w`` is its inverse; the camera centre is
+  ``C = -R.T @ t`` (= ``c2w[:3, 3]``). Arrays of poses are ``[N,3,4]`` or ``[N,4,4]``.
+* A similarity ``(s, R, t)`` maps points ``y = s * R @ x + t``; as a 4x4 matrix
+  ``[[s R, t], [0, 1]]``.
+* Learnable pose corrections are se(3) vectors ``xi = (rho, omega)`` (translation part
+  first, then the rotation vector), applied on the left of the world-to-camera pose:
+  ``w2c' = exp(xi) @ w2c`` (a perturbation in the camera frame, as in BARF).
+
+Numpy functions are used by the geometric front-end and evaluation; torch functions
+(suffix-free, in the second half of the file) by the neural stages, differentiably.
+"""
+from __future__ import annotations
+
+import numpy as np
+import roma
+import torch
+
+# --------------------------------------------------------------------------- numpy
+
+
+def to_4x4(pose: np.ndarray) -> np.ndarray:
+    """[...,3,4] or [...,4,4] -> [...,4,4]."""
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape[-2:] == (4, 4):
+        return pose.copy()
+    out = np.zeros(pose.shape[:-2] + (4, 4))
+    out[..., :3, :] = pose
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def invert_pose(pose: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid pose ([...,3,4] or [...,4,4]); returns [...,4,4]. w2c <-> c2w."""
+    pose = to_4x4(pose)
+    R, t = pose[..., :3, :3], pose[..., :3, 3:]
+    Rt = np.swapaxes(R, -1, -2)
+    out = np.zeros_like(pose)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3:] = -Rt @ t
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def camera_centers(w2c: np.ndarray) -> np.ndarray:
+    """Camera centres C = -R^T t; [N,3]."""
+    w2c = np.asarray(w2c, dtype=np.float64)
+    R, t = w2c[..., :3, :3], w2c[..., :3, 3]
+    return -np.einsum("...ji,...j->...i", R, t)
+
+
+def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split a 3x4 projection ``K [R|t]`` into K (K[2,2] = 1) and w2c [4,4]."""
+    import cv2
+
+    K, R, C_h = cv2.decomposeProjectionMatrix(np.asarray(P[:3, :4], dtype=np.float64))[:3]
+    K = K / K[2, 2]
+    C = (C_h[:3] / C_h[3]).ravel()
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ C
+    return K, w2c
+
+
+def look_at_w2c(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """World-to-camera pose [4,4] of an OpenCV camera at ``eye`` looking at ``target``.
+    ``up`` is the world direction that should appear up in the image (-y of the camera)."""
+    z = np.asarray(target, float) - np.asarray(eye, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(z, -np.asarray(up, float))
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])  # rows are camera axes in world coordinates
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ np.asarray(eye, float)
+    return w2c
+
+
+def umeyama_sim3(src: np.ndarray, dst: np.ndarray, with_scale: bool = True):
+    """Least-squares similarity with ``dst ~ s * R @ src + t`` (Umeyama 1991).
+
+    src, dst: [N,3] corresponding points (N >= 3, not collinear). Returns (s, R [3,3], t [3]).
+    """
+    src = np.asarray(src, np.float64)
+    dst = np.asarray(dst, np.float64)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    var_s = (xs**2).sum() / len(src)
+    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale else 1.0
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def sim3_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, :3] = s * R
+    M[:3, 3] = t
+    return M
+
+
+def transform_w2c(w2c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Express world-to-camera poses in a new world frame ``y = s R x + t``.
+
+    The camera frame keeps its orientation and is scaled with the world, so that
+    projections are unchanged: ``w2c_new = [R_c R^T | s t_c - R_c R^T t]``. Returns [N,4,4].
+    """
+    w2c = to_4x4(w2c)
+    Rc, tc = w2c[..., :3, :3], w2c[..., :3, 3]
+    out = np.zeros_like(w2c)
+    out[..., :3, :3] = Rc @ R.T
+    out[..., :3, 3] = s * tc - np.einsum("...ij,j->...i", Rc @ R.T, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """Geodesic angle of rotation matrices [...,3,3] in degrees."""
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def intrinsics_scaled(K: np.ndarray, sx: float, sy: float | None = None) -> np.ndarray:
+    """K of an image resized by (sx, sy) (pixel-centre convention above: no half-pixel shift)."""
+    sy = sx if sy is None else sy
+    K = np.array(K, dtype=np.float64)
+    K[..., 0, :] *= sx
+    K[..., 1, :] *= sy
+    return K
+
+
+# --------------------------------------------------------------------------- torch
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    """[...,3] -> [...,3,3] cross-product matrices."""
+    zero = torch.zeros_like(v[..., 0])
+    return torch.stack(
+        [zero, -v[..., 2], v[..., 1], v[..., 2], zero, -v[..., 0], -v[..., 1], v[..., 0], zero], -1
+    ).reshape(v.shape[:-1] + (3, 3))
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """se(3) -> SE(3). xi: [...,6] = (rho, omega). Returns [...,3,4]. Differentiable at 0."""
+    rho, omega = xi[..., :3], xi[..., 3:]
+    R = roma.rotvec_to_rotmat(omega)  # [...,3,3]
+    theta2 = (omega**2).sum(-1, keepdim=True)[..., None]  # [...,1,1]
+    theta = theta2.clamp_min(1e-12).sqrt()
+    small = theta2 < 1e-8
+    # V = I + B W + C W^2 with Taylor expansions near theta = 0
+    B = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-12))
+    C = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (theta2 * theta).clamp_min(1e-12))
+    W = _skew(omega)
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand_as(W)
+    V = eye + B * W + C * (W @ W)
+    t = (V @ rho[..., None])[..., 0]
+    return torch.cat([R, t[..., None]], -1)
+
+
+def se3_log(pose: torch.Tensor) -> torch.Tensor:
+    """SE(3) -> se(3). pose: [...,3,4] or [...,4,4]. Returns [...,6] = (rho, omega)."""
+    R, t = pose[..., :3, :3], pose[..., :3, 3]
+    omega = roma.rotmat_to_rotvec(R)
+    theta2 = (omega**2).sum(-1, keepdim=True)[..., None]
+    theta = theta2.clamp_min(1e-12).sqrt()
+    small = theta2 < 1e-8
+    W = _skew(omega)
+    # V^-1 = I - W/2 + D W^2
+    D = torch.where(
+        small,
+        1 / 12 + theta2 / 720,
+        (1 - theta * torch.sin(theta) / (2 * (1 - torch.cos(theta))).clamp_min(1e-12)) / theta2.clamp_min(1e-12),
+    )
+    eye = torch.eye(3, dtype=pose.dtype, device=pose.device).expand_as(W)
+    V_inv = eye - 0.5 * W + D * (W @ W)
+    rho = (V_inv @ t[..., None])[..., 0]
+    return torch.cat([rho, omega], -1)
+
+
+def compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a @ b for rigid poses [...,3,4] -> [...,3,4]."""
+    R = a[..., :3, :3] @ b[..., :3, :3]
+    t = (a[..., :3, :3] @ b[..., :3, 3:])[..., 0] + a[..., :3, 3]
+    return torch.cat([R, t[..., None]], -1)
+
+
+def apply_correction(xi: torch.Tensor, w2c: torch.Tensor) -> torch.Tensor:
+    """Corrected world-to-camera pose exp(xi) @ w2c; [...,6] x [...,3|4,4] -> [...,3,4]."""
+    return compose(se3_exp(xi), w2c[..., :3, :4])
+
+
+def invert(pose: torch.Tensor) -> torch.Tensor:
+    """Inverse of rigid poses [...,3,4] -> [...,3,4] (w2c <-> c2w)."""
+    Rt = pose[..., :3, :3].transpose(-1, -2)
+    return torch.cat([Rt, -(Rt @ pose[..., :3, 3:])], -1)

@@ -1,0 +1,142 @@
+"""Typed, validated parameters.
+
+Each stage module defines ``Params``, a dataclass whose fields are declared with
+:func:`param` (default, one-line help, optional range or choices). ``params.yaml`` holds
+one section per dataclass; profiles (``fast``, ``paper``) override keys per section.
+Resolution order: dataclass defaults < params.yaml section < profile < ``--set``.
+Unknown keys, wrong types and out-of-range values raise :class:`ParamError` naming the key.
+"""
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import MISSING, field, fields
+from typing import Any
+
+
+class ParamError(ValueError):
+    """A parameter that is unknown, of the wrong type or out of range."""
+
+
+def param(default, help: str, *, lo=None, hi=None, choices=None):
+    """A dataclass field with documentation and validation metadata."""
+    meta = {"help": help, "lo": lo, "hi": hi, "choices": choices}
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: type(default)(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def _coerce(key: str, value: Any, typ) -> Any:
+    origin = typing.get_origin(typ)
+    args = typing.get_args(typ)
+    if origin is typing.Union or str(origin) == "<class 'types.UnionType'>":
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(key, value, a)
+            except ParamError as e:
+                errors.append(str(e))
+        raise ParamError(errors[0] if errors else f"{key}: bad value {value!r}")
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ParamError(f"{key}: expected a list, got {value!r}")
+        inner = args[0] if args else Any
+        return [_coerce(key, v, inner) for v in value]
+    if typ is Any:
+        return value
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+        raise ParamError(f"{key}: expected true/false, got {value!r}")
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                return int(value)
+            raise ParamError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if typ is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ParamError(f"{key}: expected a number, got {value!r}")
+        return float(value)
+    if typ is str:
+        if not isinstance(value, str):
+            raise ParamError(f"{key}: expected a string, got {value!r}")
+        return value
+    if origin is dict or typ is dict:
+        if not isinstance(value, dict):
+            raise ParamError(f"{key}: expected a mapping, got {value!r}")
+        return dict(value)
+    return value
+
+
+def build(cls, section: str, values: dict | None):
+    """Instantiate ``cls`` from a mapping, validating every key and value."""
+    values = dict(values or {})
+    hints = typing.get_type_hints(cls)
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise ParamError(
+            f"unknown parameter {section}.{unknown[0]} (known keys of '{section}': {', '.join(sorted(known))})"
+        )
+    kwargs = {}
+    for name, f in known.items():
+        key = f"{section}.{name}"
+        if name in values:
+            v = _coerce(key, values[name], hints[name])
+        elif f.default is not MISSING:
+            v = f.default
+        else:
+            v = f.default_factory()  # type: ignore[misc]
+        m = f.metadata
+        if m.get("choices") is not None and v not in m["choices"]:
+            raise ParamError(f"{key}: {v!r} is not one of {m['choices']}")
+        for item in v if isinstance(v, list) else [v]:
+            if isinstance(item, (int, float)) and not isinstance(item, bool):
+                if m.get("lo") is not None and item < m["lo"]:
+                    raise ParamError(f"{key}: {item} is below the minimum {m['lo']}")
+                if m.get("hi") is not None and item > m["hi"]:
+                    raise ParamError(f"{key}: {item} is above the maximum {m['hi']}")
+        kwargs[name] = v
+    return cls(**kwargs)
+
+
+def as_dict(obj) -> dict:
+    return dataclasses.asdict(obj)
+
+
+def describe(cls) -> list[tuple[str, Any, str]]:
+    """(name, default, help) per field, for documentation and ``show``."""
+    out = []
+    for f in fields(cls):
+        d = f.default if f.default is not MISSING else f.default_factory()  # type: ignore[misc]
+        out.append((f.name, d, f.metadata.get("help", "")))
+    return out
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """``section.key=value`` -> (section, key, YAML-parsed value)."""
+    import yaml
+
+    if "=" not in text or "." not in text.split("=", 1)[0]:
+        raise ParamError(f"bad --set {text!r}: expected section.key=value, e.g. schedule.alpha=0.5")
+    lhs, rhs = text.split("=", 1)
+    section, key = lhs.strip().split(".", 1)
+    try:
+        value = yaml.safe_load(rhs) if rhs.strip() else ""
+    except yaml.YAMLError as e:
+        raise ParamError(f"bad --set {text!r}: value is not valid YAML ({e})") from None
+    return section, key, value
+
+
+@dataclasses.dataclass
+class RunParams:
+    """Section `run` of params.yaml: settings shared by the stages that declare it."""
+
+    device: str = param("cpu", "torch device for the neural stages: cpu, cuda or cuda:N", choices=None)
+    seed: int = param(0, "Random seed of every stochastic step", lo=0)
+    threads: int = param(2, "CPU threads for torch and thread pools", lo=1)

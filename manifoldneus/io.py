@@ -1,0 +1,95 @@
+"""Artifact I/O: arrays to zarr (v3), metadata to JSON, meshes to PLY, images to PNG."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def save_arrays(path: Path, arrays: dict, attrs: dict | None = None, chunk_first: bool = True) -> None:
+    """Write a zarr v3 group of numpy arrays. Arrays of per-view data are chunked one view each."""
+    import zarr
+
+    group = zarr.open_group(str(path), mode="w", zarr_format=3)
+    for name, value in arrays.items():
+        value = np.asarray(value)
+        chunks = (1,) + value.shape[1:] if (chunk_first and value.ndim >= 3) else value.shape
+        chunks = tuple(max(c, 1) for c in chunks)
+        arr = group.create_array(name, shape=value.shape, dtype=value.dtype, chunks=chunks)
+        if value.size:
+            arr[...] = value
+    if attrs:
+        group.attrs.update(attrs)
+
+
+def load_arrays(path: Path, names: list[str] | None = None) -> dict:
+    """Read a zarr group into a dict of numpy arrays (all arrays, or ``names``)."""
+    import zarr
+
+    group = zarr.open_group(str(path), mode="r")
+    keys = names if names is not None else sorted(k for k, _ in group.arrays())
+    return {k: np.asarray(group[k][...]) for k in keys}
+
+
+def array_names(path: Path) -> list[str]:
+    import zarr
+
+    return sorted(k for k, _ in zarr.open_group(str(path), mode="r").arrays())
+
+
+def load_attrs(path: Path) -> dict:
+    import zarr
+
+    return dict(zarr.open_group(str(path), mode="r").attrs)
+
+
+def _jsonable(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def save_json(path: Path, obj) -> None:
+    Path(path).write_text(json.dumps(obj, indent=2, default=_jsonable, allow_nan=False) + "\n")
+
+
+def load_json(path: Path):
+    return json.loads(Path(path).read_text())
+
+
+def save_png(path: Path, image: np.ndarray) -> None:
+    """uint8 [H,W] or [H,W,3] RGB (floats in [0,1] are converted)."""
+    import cv2
+
+    image = np.asarray(image)
+    if image.dtype != np.uint8:
+        image = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+    if image.ndim == 3:
+        image = image[..., ::-1]
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"could not write {path}")
+
+
+def read_image(path: Path) -> np.ndarray:
+    """RGB uint8 [H,W,3]; raises a clear error naming an unreadable or corrupt file."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ValueError(f"cannot decode image {path}: the file is unreadable or corrupt; replace or remove it")
+    return image[..., ::-1].copy()
+
+
+def save_figure(path: Path, fig) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.savefig(str(path), dpi=110, bbox_inches="tight")
+    plt.close(fig)

@@ -1,0 +1,484 @@
+"""Synthetic DTU-like scene: a textured analytic object with exactly known surface and poses.
+
+The object (fixed shape, independent of the seed) is the union (``min``) of three primitives,
+in the object-normalised world frame (z up, everything inside radius ~0.69 of the origin):
+
+* a rounded box (the "base"), centre (0, 0, -0.22), half extents (0.45, 0.32, 0.18), rounding 0.06;
+* a sphere, centre (-0.2, 0.02, 0.1), radius 0.24, sunk into the top of the box;
+* a torus (a ring standing on the box, its hole facing the cameras), centre (0.25, -0.02, 0.1),
+  axis ~ world y (tilted 14 deg towards x), major radius 0.19, tube radius 0.065.
+
+:func:`sdf` is the ``min`` of the three exact primitive SDFs. It is **exact outside the
+object** (and exactly 0 on the surface); inside, where primitives overlap, ``|sdf|`` is a lower
+bound of the true distance to the surface (exact inside any single primitive away from the
+junctions). So ``mean(|sdf(p)|)`` is the exact accuracy of points on/outside the object and
+a (slight) underestimate for points inside near the junctions.
+
+The **seed only changes the texture** (a view-independent procedural albedo defined in 3D:
+smooth coloured fBm plus three scales of random coloured dots). Shading is Lambertian with
+two lights fixed in the world, baked into the colour, so the images are photometrically
+consistent across views. Background: a mild dark-grey vertical gradient, untextured.
+
+Cameras (:func:`camera_poses`): three arcs of the upper hemisphere (elevations 20/40/60 deg,
+azimuth spans +-70/+-60/+-45 deg, in front of the object, i.e. on the -y side), distance 3.0,
+looking at the origin with world +z up, ordered serpentine (consecutive indices are neighbours,
+like the DTU robot path). Intrinsics: fx = fy = 2.4 W, principal point at the image centre.
+Conventions are those of :mod:`manifoldneus.cameras` (OpenCV, w2c, pixel centres at +0.5).
+As in DTU, the back and the bottom of the object are never observed: use
+:func:`points_visible` to restrict ground-truth surface samples to the observed part.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from manifoldneus.cameras import look_at_w2c
+
+# --------------------------------------------------------------------------- shape
+
+BOX_CENTER = np.array([0.0, 0.0, -0.22])
+BOX_HALF = np.array([0.45, 0.32, 0.18])
+BOX_ROUND = 0.06
+SPHERE_CENTER = np.array([-0.2, 0.02, 0.1])
+SPHERE_RADIUS = 0.24
+TORUS_CENTER = np.array([0.25, -0.02, 0.1])
+_a = np.array([0.25, 1.0, 0.0])
+TORUS_AXIS = _a / np.linalg.norm(_a)
+TORUS_R = 0.19  # major radius
+TORUS_r = 0.065  # tube radius
+
+
+def _torus_frame() -> np.ndarray:
+    """Rotation [3,3] whose columns are the torus local axes (x, y = TORUS_AXIS, z) in world."""
+    y = TORUS_AXIS
+    z = np.array([0.0, 0.0, 1.0])
+    z = z - y * (y @ z)
+    z /= np.linalg.norm(z)
+    x = np.cross(y, z)
+    return np.stack([x, y, z], 1)
+
+
+TORUS_FRAME = _torus_frame()
+
+# Bounding sphere used by the tracer (the object is inside radius ~0.69).
+BOUND_RADIUS = 0.75
+
+
+def _sdf_box(p: np.ndarray) -> np.ndarray:
+    q = np.abs(p - BOX_CENTER) - (BOX_HALF - BOX_ROUND)
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
+    inside = np.minimum(q.max(-1), 0.0)
+    return outside + inside - BOX_ROUND
+
+
+def _sdf_sphere(p: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(p - SPHERE_CENTER, axis=-1) - SPHERE_RADIUS
+
+
+def _sdf_torus(p: np.ndarray) -> np.ndarray:
+    q = (p - TORUS_CENTER) @ TORUS_FRAME  # local coordinates, axis = local y
+    ring = np.sqrt(q[..., 0] ** 2 + q[..., 2] ** 2) - TORUS_R
+    return np.sqrt(ring**2 + q[..., 1] ** 2) - TORUS_r
+
+
+def sdf(points: np.ndarray) -> np.ndarray:
+    """Signed distance of the object, [P,3] -> [P] (negative inside).
+
+    Exact outside the object and on it; inside it is a lower bound of the distance (min of
+    exact primitive SDFs). The shape does not depend on any seed."""
+    p = np.asarray(points, dtype=np.float64)
+    return np.minimum(np.minimum(_sdf_box(p), _sdf_sphere(p)), _sdf_torus(p))
+
+
+def sdf_normals(points: np.ndarray, eps: float = 1e-5) -> np.ndarray:
+    """Unit outward normals (normalised central-difference gradient of :func:`sdf`), [P,3]."""
+    p = np.asarray(points, dtype=np.float64)
+    g = np.empty_like(p)
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = eps
+        g[:, k] = sdf(p + d) - sdf(p - d)
+    return g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-12)
+
+
+def bounding_box() -> tuple[np.ndarray, np.ndarray]:
+    """Exact min / max corners [3], [3] of the object (union of the primitives' exact boxes)."""
+    lo = [BOX_CENTER - BOX_HALF, SPHERE_CENTER - SPHERE_RADIUS]
+    hi = [BOX_CENTER + BOX_HALF, SPHERE_CENTER + SPHERE_RADIUS]
+    # torus: extent along world axis k is R * sqrt(1 - a_k^2) + r
+    ext = TORUS_R * np.sqrt(np.clip(1.0 - TORUS_AXIS**2, 0.0, None)) + TORUS_r
+    lo.append(TORUS_CENTER - ext)
+    hi.append(TORUS_CENTER + ext)
+    return np.min(lo, 0), np.max(hi, 0)
+
+
+# --------------------------------------------------------------------------- surface samples
+
+
+def _sample_sphere_dirs(rng: np.random.Generator, n: int) -> np.ndarray:
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _box_pieces():
+    """Areas of the rounded box pieces: 3 face pairs, 3 edge groups, corners."""
+    a = BOX_HALF - BOX_ROUND
+    r = BOX_ROUND
+    faces = [2 * 4 * a[(i + 1) % 3] * a[(i + 2) % 3] for i in range(3)]  # pair of faces normal to i
+    edges = [4 * (np.pi * r / 2) * 2 * a[i] for i in range(3)]  # 4 quarter cylinders along i
+    corners = 4 * np.pi * r**2
+    return a, r, np.array(faces + edges + [corners])
+
+
+def _sample_box(rng: np.random.Generator, n: int) -> np.ndarray:
+    a, r, areas = _box_pieces()
+    piece = rng.choice(len(areas), size=n, p=areas / areas.sum())
+    out = np.zeros((n, 3))
+    for k in range(7):
+        idx = np.nonzero(piece == k)[0]
+        m = len(idx)
+        if m == 0:
+            continue
+        s = rng.choice([-1.0, 1.0], size=(m, 3))
+        if k < 3:  # faces normal to axis i
+            i, j, l = k, (k + 1) % 3, (k + 2) % 3
+            out[idx, i] = s[:, 0] * (a[i] + r)
+            out[idx, j] = rng.uniform(-a[j], a[j], m)
+            out[idx, l] = rng.uniform(-a[l], a[l], m)
+        elif k < 6:  # quarter cylinders along axis i
+            i = k - 3
+            j, l = (i + 1) % 3, (i + 2) % 3
+            th = rng.uniform(0.0, np.pi / 2, m)
+            out[idx, i] = rng.uniform(-a[i], a[i], m)
+            out[idx, j] = s[:, 1] * (a[j] + r * np.cos(th))
+            out[idx, l] = s[:, 2] * (a[l] + r * np.sin(th))
+        else:  # eighth spheres at the corners
+            u = _sample_sphere_dirs(rng, m)
+            out[idx] = np.sign(u) * a + r * u
+    return out + BOX_CENTER
+
+
+def _sample_torus(rng: np.random.Generator, n: int) -> np.ndarray:
+    pts = []
+    got = 0
+    while got < n:
+        m = 2 * (n - got) + 16
+        phi = rng.uniform(0, 2 * np.pi, m)
+        keep = rng.uniform(0, 1, m) < (TORUS_R + TORUS_r * np.cos(phi)) / (TORUS_R + TORUS_r)
+        phi = phi[keep]
+        th = rng.uniform(0, 2 * np.pi, len(phi))
+        rho = TORUS_R + TORUS_r * np.cos(phi)
+        local = np.stack([rho * np.cos(th), TORUS_r * np.sin(phi), rho * np.sin(th)], 1)
+        pts.append(local)
+        got += len(local)
+    local = np.concatenate(pts)[:n]
+    return local @ TORUS_FRAME.T + TORUS_CENTER
+
+
+def _areas() -> np.ndarray:
+    box = _box_pieces()[2].sum()
+    sphere = 4 * np.pi * SPHERE_RADIUS**2
+    torus = 4 * np.pi**2 * TORUS_R * TORUS_r
+    return np.array([box, sphere, torus])
+
+
+def sample_surface(n: int, seed: int = 0) -> np.ndarray:
+    """[n,3] points exactly on the object's surface (|sdf| < 1e-6; float64 round-off only),
+    uniform by area: each primitive's surface is sampled uniformly at a common density and
+    the parts inside another primitive are discarded."""
+    rng = np.random.default_rng(seed)
+    areas = _areas()
+    samplers = (_sample_box, _sample_sphere_dirs, _sample_torus)
+    others = ((_sdf_sphere, _sdf_torus), (_sdf_box, _sdf_torus), (_sdf_box, _sdf_sphere))
+    chunks, total = [], 0
+    density = 1.3 * n / areas.sum()
+    while total < n:
+        for k in range(3):
+            m = int(np.ceil(density * areas[k]))
+            if k == 1:
+                p = SPHERE_CENTER + SPHERE_RADIUS * _sample_sphere_dirs(rng, m)
+            else:
+                p = samplers[k](rng, m)
+            keep = np.ones(m, bool)
+            for f in others[k]:
+                keep &= f(p) > 0.0
+            chunks.append(p[keep])
+            total += int(keep.sum())
+    pts = np.concatenate(chunks)
+    return pts[rng.choice(len(pts), size=n, replace=False)]
+
+
+# --------------------------------------------------------------------------- texture
+
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_PX, _PY, _PZ = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xC2B2AE3D27D4EB4F), np.uint64(0x165667B19E3779F9)
+
+
+def _hash01(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, salt: int) -> np.ndarray:
+    """Deterministic uniform [0,1) per integer lattice cell (splitmix64 finaliser)."""
+    with np.errstate(over="ignore"):
+        h = (
+            ix.astype(np.int64).view(np.uint64) * _PX
+            ^ iy.astype(np.int64).view(np.uint64) * _PY
+            ^ iz.astype(np.int64).view(np.uint64) * _PZ
+            ^ np.uint64(salt & 0xFFFFFFFFFFFFFFFF)
+        )
+        h ^= h >> np.uint64(30)
+        h *= _M1
+        h ^= h >> np.uint64(27)
+        h *= _M2
+        h ^= h >> np.uint64(31)
+    return (h >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+
+
+def _value_noise(p: np.ndarray, salt: int) -> np.ndarray:
+    """Smooth 3D value noise in [0,1], [P,3] -> [P] (lattice spacing 1)."""
+    i0 = np.floor(p)
+    f = p - i0
+    f = f * f * (3.0 - 2.0 * f)
+    i0 = i0.astype(np.int64)
+    out = 0.0
+    for dx in (0, 1):
+        wx = f[:, 0] if dx else 1.0 - f[:, 0]
+        for dy in (0, 1):
+            wy = f[:, 1] if dy else 1.0 - f[:, 1]
+            for dz in (0, 1):
+                wz = f[:, 2] if dz else 1.0 - f[:, 2]
+                out = out + wx * wy * wz * _hash01(i0[:, 0] + dx, i0[:, 1] + dy, i0[:, 2] + dz, salt)
+    return out
+
+
+def _hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+    k = np.stack([(5 + h * 6) % 6, (3 + h * 6) % 6, (1 + h * 6) % 6], -1)
+    return v[:, None] - v[:, None] * s[:, None] * np.clip(np.minimum(k, 4 - k), 0, 1)
+
+
+def albedo(points: np.ndarray, seed: int = 0) -> np.ndarray:
+    """View-independent procedural albedo in [0,1], [P,3] -> [P,3]; the seed picks the texture."""
+    p = np.asarray(points, dtype=np.float64)
+    rng = np.random.default_rng([seed, 0x5EED])
+    salts = rng.integers(0, 2**62, size=32)
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]  # random lattice orientation per seed
+    q = p @ rot + rng.uniform(-10, 10, 3)
+    # smooth coloured base (two octaves of value noise per channel)
+    base = np.empty((len(p), 3))
+    for c in range(3):
+        n = 0.65 * _value_noise(q * 2.5, int(salts[c])) + 0.35 * _value_noise(q * 6.0, int(salts[3 + c]))
+        base[:, c] = n
+    col = 0.25 + 0.6 * base
+    # brightness modulation at a finer scale
+    col *= (0.7 + 0.6 * _value_noise(q * 18.0, int(salts[6])))[:, None]
+    # random coloured dots at three scales (each dot's ball lies inside its lattice cell)
+    for layer, (freq, rmin, rmax, prob) in enumerate(((7.0, 0.18, 0.38, 0.85), (14.0, 0.15, 0.35, 0.8), (26.0, 0.15, 0.3, 0.7))):
+        qq = q * freq
+        cell = np.floor(qq)
+        ci = cell.astype(np.int64)
+        s0 = int(salts[8 + 6 * layer])
+        h = [_hash01(ci[:, 0], ci[:, 1], ci[:, 2], s0 + k) for k in range(8)]
+        rad = rmin + (rmax - rmin) * h[0]
+        centre = cell + 0.5 + (np.stack(h[1:4], -1) - 0.5) * (1.0 - 2.0 * rad[:, None])
+        dist = np.linalg.norm(qq - centre, axis=-1)
+        alpha = np.clip((rad - dist) / 0.08 + 0.5, 0.0, 1.0) * (h[4] < prob)
+        dark = h[6] < 0.45  # dark dots or bright saturated dots, for luminance contrast
+        v = np.where(dark, 0.05 + 0.2 * h[7], 0.75 + 0.25 * h[7])
+        dot = _hsv_to_rgb(h[5], 0.55 + 0.45 * h[7], v)
+        col = col * (1 - alpha[:, None]) + dot * alpha[:, None]
+    return np.clip(col, 0.0, 1.0)
+
+
+LIGHTS = (  # (direction towards the light in world, intensity)
+    (np.array([0.35, -0.45, 0.82]) / np.linalg.norm([0.35, -0.45, 0.82]), 0.7),
+    (np.array([-0.6, -0.3, 0.3]) / np.linalg.norm([-0.6, -0.3, 0.3]), 0.25),
+)
+AMBIENT = 0.3
+
+
+def shade(points: np.ndarray, normals_world: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Linear RGB in [0,1] of surface points: albedo x (ambient + Lambert, lights fixed in world)."""
+    s = np.full(len(points), AMBIENT)
+    for d, w in LIGHTS:
+        s = s + w * np.clip(normals_world @ d, 0.0, None)
+    return np.clip(albedo(points, seed) * s[:, None], 0.0, 1.0)
+
+
+def background(height: int, width: int) -> np.ndarray:
+    """Background colour [H,W,3] in [0,1]: a mild dark-grey vertical gradient."""
+    v = np.linspace(0.2, 0.12, height)[:, None, None]
+    return np.broadcast_to(v * np.array([1.0, 1.0, 1.05]), (height, width, 3)).copy()
+
+
+# --------------------------------------------------------------------------- tracing
+
+
+def trace(origins: np.ndarray, dirs: np.ndarray, eps: float = 1e-7, max_steps: int = 300) -> np.ndarray:
+    """Sphere-trace rays against :func:`sdf`. origins, dirs: [R,3] (dirs unit). Returns the
+    ray parameter t [R] of the first hit (inf on a miss). Vectorised over rays, with the
+    still-marching set compacted at every step."""
+    o = np.asarray(origins, np.float64)
+    d = np.asarray(dirs, np.float64)
+    R = len(o)
+    t_hit = np.full(R, np.inf)
+    # entry / exit of the bounding sphere
+    b = np.einsum("ij,ij->i", o, d)
+    c = np.einsum("ij,ij->i", o, o) - BOUND_RADIUS**2
+    disc = b * b - c
+    act = np.nonzero(disc > 0)[0]
+    sq = np.sqrt(disc[act])
+    t = np.maximum(-b[act] - sq, 0.0)
+    t_far = -b[act] + sq
+    oa, da = o[act], d[act]
+    for _ in range(max_steps):
+        if len(act) == 0:
+            break
+        dist = sdf(oa + t[:, None] * da)
+        hit = dist < eps
+        t_hit[act[hit]] = t[hit]
+        live = ~hit & (t + dist <= t_far)
+        act, t, t_far, oa, da = act[live], (t + dist)[live], t_far[live], oa[live], da[live]
+    if len(act):  # not converged: accept only rays that ended essentially on the surface
+        dist = sdf(oa + t[:, None] * da)
+        ok = dist < 1e-4
+        t_hit[act[ok]] = t[ok]
+    return t_hit
+
+
+def pixel_rays(K: np.ndarray, w2c: np.ndarray, height: int, width: int, offsets=((0.5, 0.5),)):
+    """World rays through pixel points (col + ox, row + oy) for each offset.
+
+    Returns origins [S,H*W,3], unit dirs [S,H*W,3] (world) and the z component of the unit
+    camera-frame direction [S,H*W] (z-depth = t * dz)."""
+    Kinv = np.linalg.inv(K)
+    R, tvec = w2c[:3, :3], w2c[:3, 3]
+    C = -R.T @ tvec
+    rows, cols = np.mgrid[0:height, 0:width]
+    dirs, dzs = [], []
+    for ox, oy in offsets:
+        pix = np.stack([cols.ravel() + ox, rows.ravel() + oy, np.ones(height * width)], 1)
+        dc = pix @ Kinv.T
+        dc /= np.linalg.norm(dc, axis=1, keepdims=True)
+        dirs.append(dc @ R)  # R^T dc, row-wise
+        dzs.append(dc[:, 2])
+    dirs = np.stack(dirs)
+    return np.broadcast_to(C, dirs.shape).copy(), dirs, np.stack(dzs)
+
+
+def render_view(K: np.ndarray, w2c: np.ndarray, height: int, width: int, seed: int = 0, supersample: int = 2):
+    """Render one view. Returns (image uint8 [H,W,3], mask bool [H,W], depth float32 [H,W],
+    normals float32 [H,W,3] in the camera frame). Mask / depth / normals come from the ray
+    through the pixel centre; the colour averages ``supersample**2`` sub-pixel rays."""
+    K = np.asarray(K, np.float64)
+    w2c = np.asarray(w2c, np.float64)
+    ss = max(int(supersample), 1)
+    sub = [((i + 0.5) / ss, (j + 0.5) / ss) for j in range(ss) for i in range(ss)]
+    offsets = [(0.5, 0.5)] + ([] if ss == 1 else sub)
+    o, d, dz = pixel_rays(K, w2c, height, width, offsets)
+    S, P = d.shape[:2]
+    t = trace(o.reshape(-1, 3), d.reshape(-1, 3)).reshape(S, P)
+    hit = np.isfinite(t)
+    pts = o[hit] + t[hit][:, None] * d[hit]
+    n_world = sdf_normals(pts)
+    rgb = np.zeros((S, P, 3))
+    rgb[hit] = shade(pts, n_world, seed)
+    bg = background(height, width).reshape(1, P, 3)
+    rgb = np.where(hit[..., None], rgb, bg)
+    colour = rgb[0] if ss == 1 else rgb[1:].mean(0)
+    image = np.clip(np.round(colour * 255.0), 0, 255).astype(np.uint8).reshape(height, width, 3)
+    mask = hit[0].reshape(height, width)
+    depth = np.zeros(P, np.float32)
+    depth[hit[0]] = (t[0][hit[0]] * dz[0][hit[0]]).astype(np.float32)
+    normals = np.zeros((P, 3), np.float32)
+    n_centre = n_world[: int(hit[0].sum())]  # centre rays come first in the boolean order
+    normals[hit[0]] = (n_centre @ w2c[:3, :3].T).astype(np.float32)
+    return image, mask, depth.reshape(height, width), normals.reshape(height, width, 3)
+
+
+# --------------------------------------------------------------------------- cameras
+
+DISTANCE = 3.0
+FOCAL_FACTOR = 2.4  # fx = 2.4 W, as DTU
+ARCS = ((20.0, 70.0), (40.0, 60.0), (60.0, 45.0))  # (elevation, half azimuth span) in degrees
+
+
+def _arc_counts(n_views: int) -> list[int]:
+    lengths = np.array([np.cos(np.radians(e)) * 2 * s for e, s in ARCS])
+    if n_views < len(ARCS):
+        return [n_views] + [0] * (len(ARCS) - 1)
+    raw = 1 + (n_views - len(ARCS)) * lengths / lengths.sum()
+    counts = np.floor(raw).astype(int)
+    for k in np.argsort(-(raw - counts))[: n_views - counts.sum()]:
+        counts[k] += 1
+    return counts.tolist()
+
+
+def intrinsics(height: int, width: int) -> np.ndarray:
+    f = FOCAL_FACTOR * width
+    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def camera_positions(n_views: int = 49) -> np.ndarray:
+    """Camera centres [N,3] on the arcs, serpentine order."""
+    out = []
+    for a, (count, (elev, span)) in enumerate(zip(_arc_counts(n_views), ARCS)):
+        if count == 0:
+            continue
+        az = np.linspace(-span, span, count) if count > 1 else np.zeros(1)
+        if a % 2 == 1:
+            az = az[::-1]
+        e, az = np.radians(elev), np.radians(az)
+        out.append(DISTANCE * np.stack([np.cos(e) * np.sin(az), -np.cos(e) * np.cos(az), np.full_like(az, np.sin(e))], 1))
+    return np.concatenate(out)
+
+
+def camera_poses(n_views: int = 49) -> np.ndarray:
+    """World-to-camera poses [N,4,4] looking at the origin, world +z up in the images."""
+    return np.stack([look_at_w2c(c, np.zeros(3), np.array([0.0, 0.0, 1.0])) for c in camera_positions(n_views)])
+
+
+def points_visible(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, height: int, width: int, tol: float = 1e-4) -> np.ndarray:
+    """bool [P]: point (on the surface) is inside the image and unoccluded in at least one view.
+    K [N,3,3] or [3,3], w2c [N,4,4]."""
+    p = np.asarray(points, np.float64)
+    w2c = np.asarray(w2c, np.float64).reshape(-1, 4, 4)
+    K = np.broadcast_to(np.asarray(K, np.float64), (len(w2c), 3, 3))
+    seen = np.zeros(len(p), bool)
+    for Ki, T in zip(K, w2c):
+        xc = p @ T[:3, :3].T + T[:3, 3]
+        uv = xc @ Ki.T
+        u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+        inside = (xc[:, 2] > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height) & ~seen
+        idx = np.nonzero(inside)[0]
+        if len(idx) == 0:
+            continue
+        C = -T[:3, :3].T @ T[:3, 3]
+        vec = p[idx] - C
+        dist = np.linalg.norm(vec, axis=1)
+        t = trace(np.broadcast_to(C, vec.shape), vec / dist[:, None])
+        seen[idx[t >= dist - tol]] = True
+    return seen
+
+
+# --------------------------------------------------------------------------- scene
+
+
+@dataclass
+class SyntheticScene:
+    images: np.ndarray  # uint8 [N,H,W,3] RGB
+    masks: np.ndarray  # bool [N,H,W] foreground = object
+    K: np.ndarray  # float64 [N,3,3]
+    w2c: np.ndarray  # float64 [N,4,4] world-to-camera, object inside the unit sphere
+    depth: np.ndarray  # float32 [N,H,W] z-depth in camera frame (0 on background)
+    normals: np.ndarray  # float32 [N,H,W,3] unit normals, OpenCV camera frame (0 on background)
+    names: list[str] = field(default_factory=list)
+
+
+def make_scene(seed: int = 0, n_views: int = 49, resolution: int = 192) -> SyntheticScene:
+    """Render the synthetic scene: ``n_views`` views of ``resolution`` x ``resolution`` pixels.
+    The seed changes the texture only (the shape and the cameras are fixed)."""
+    H = W = int(resolution)
+    w2c = camera_poses(n_views)
+    K = np.broadcast_to(intrinsics(H, W), (len(w2c), 3, 3)).copy()
+    out = [render_view(K[i], w2c[i], H, W, seed) for i in range(len(w2c))]
+    images, masks, depth, normals = (np.stack(x) for x in zip(*out))
+    return SyntheticScene(images, masks, K, w2c, depth, normals, [f"view_{i:03d}" for i in range(len(w2c))])

@@ -1,0 +1,639 @@
+#!/usr/bin/env python
+"""manifoldneus pipeline: a cached DAG of stages, each writing a versioned artifact.
+
+    python pipeline.py run --scene S [--until STAGE | --only STAGE] [--set sec.key=value ...]
+                           [--force STAGE] [--profile fast|paper] [--preset NAME]
+    python pipeline.py status --scene S
+    python pipeline.py show --scene S STAGE
+    python pipeline.py params-diff --scene S STAGE
+    python pipeline.py gc [--scene S]
+
+Artifact layout: ``artifacts/<scene>/<stage>/<fingerprint>/`` (files + ``manifest.json`` +
+``log.txt``) and ``artifacts/<scene>/<stage>/current`` (symlink to the version in use).
+A fingerprint hashes the stage's resolved parameter sections, the source of the stage module
+and of every ``manifoldneus`` module it uses, and the fingerprints of its upstream stages
+(plus, for ``ingest``, a signature of the input files). Versions are written to a temporary
+folder and renamed when complete, so an interrupted run never leaves a version that looks done.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import fcntl
+import hashlib
+import importlib
+import inspect
+import json
+import logging
+import os
+import shutil
+import sys
+import threading
+import time
+import types
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT))
+
+from manifoldneus import config  # noqa: E402
+from manifoldneus.config import ParamError  # noqa: E402
+from manifoldneus.scenes import SceneError, resolve_scene  # noqa: E402
+
+DEFAULT_ARTIFACTS = ROOT / "artifacts"
+DEFAULT_PARAMS = ROOT / "params.yaml"
+MANIFEST = "manifest.json"
+LIBRARIES = ("numpy", "scipy", "torch", "cv2", "pycolmap", "skimage", "trimesh", "zarr", "roma")
+
+
+class PipelineError(RuntimeError):
+    """A user-facing error: printed as one clear message, without a traceback."""
+
+
+# ---------------------------------------------------------------------------- stages
+
+
+@dataclass
+class Stage:
+    name: str
+    module: types.ModuleType
+    upstream: tuple[str, ...]
+    sections: tuple[str, ...]
+    outputs: tuple[str, ...]
+
+    @property
+    def params_cls(self):
+        return self.module.Params
+
+
+def load_stages() -> dict[str, Stage]:
+    """Import every stage listed in ``stages.STAGES`` and check the DAG's rules."""
+    import stages as registry
+
+    out: dict[str, Stage] = {}
+    for name in registry.STAGES:
+        module = importlib.import_module(f"stages.{name}")
+        stage = Stage(name, module, tuple(module.UPSTREAM), tuple(module.SECTIONS), tuple(module.OUTPUTS))
+        for up in stage.upstream:
+            if up not in out:
+                raise PipelineError(f"stage {name}: upstream {up!r} is not an earlier stage in stages.STAGES")
+        if "ground_truth" in stage.upstream and name not in registry.GROUND_TRUTH_READERS:
+            raise PipelineError(
+                f"stage {name} may not read ground truth: only {sorted(registry.GROUND_TRUTH_READERS)} can"
+            )
+        out[name] = stage
+    return out
+
+
+def section_classes(stages: dict[str, Stage]) -> dict[str, type]:
+    import stages as registry
+
+    classes = dict(registry.SHARED_SECTIONS)
+    for s in stages.values():
+        classes[s.sections[0]] = s.params_cls
+    return classes
+
+
+def resolve_params(
+    stages: dict[str, Stage],
+    params_path: Path = DEFAULT_PARAMS,
+    overrides: list[str] = (),
+    profile: str | None = None,
+    preset: str | None = None,
+) -> dict[str, object]:
+    """Resolved, validated parameters: section name -> dataclass instance.
+
+    Order: dataclass defaults < params.yaml < profile < preset < ``--set`` overrides.
+    """
+    raw = yaml.safe_load(Path(params_path).read_text()) if Path(params_path).exists() else {}
+    raw = raw or {}
+    classes = section_classes(stages)
+    profiles = raw.pop("profiles", {}) or {}
+    presets = raw.pop("presets", {}) or {}
+    profile = profile or raw.pop("profile", "fast")
+    raw.pop("profile", None)
+    for section in raw:
+        if section not in classes:
+            raise ParamError(f"{params_path}: unknown section {section!r} (known: {', '.join(sorted(classes))})")
+    if profile not in profiles:
+        raise ParamError(f"unknown profile {profile!r} (params.yaml defines: {', '.join(sorted(profiles))})")
+    if preset is not None and preset not in presets:
+        raise ParamError(f"unknown preset {preset!r} (params.yaml defines: {', '.join(sorted(presets))})")
+    merged = {s: dict(raw.get(s) or {}) for s in classes}
+    for layer_name, layer in (("profile " + profile, profiles[profile]), ("preset " + str(preset), presets.get(preset))):
+        for section, values in (layer or {}).items():
+            if section not in classes:
+                raise ParamError(f"{layer_name}: unknown section {section!r}")
+            merged[section].update(values or {})
+    for text in overrides:
+        section, key, value = config.parse_override(text)
+        if section not in classes:
+            raise ParamError(f"bad --set {text!r}: unknown section {section!r} (known: {', '.join(sorted(classes))})")
+        merged[section][key] = value
+    resolved = {s: config.build(cls, s, merged[s]) for s, cls in classes.items()}
+    resolved["_profile"] = profile  # recorded in manifests; not a section
+    resolved["_preset"] = preset
+    return resolved
+
+
+# ---------------------------------------------------------------------------- fingerprints
+
+
+def _code_files(module: types.ModuleType) -> list[Path]:
+    """Source files of the module and of every ``manifoldneus``/``stages`` module it uses (transitively)."""
+    seen: dict[str, Path] = {}
+    todo = [module]
+    while todo:
+        mod = todo.pop()
+        if mod.__name__ in seen or not getattr(mod, "__file__", None):
+            continue
+        seen[mod.__name__] = Path(mod.__file__)
+        for value in vars(mod).values():
+            name = value.__name__ if isinstance(value, types.ModuleType) else getattr(value, "__module__", None)
+            if not isinstance(name, str) or not name.startswith(("manifoldneus", "stages.")):
+                continue
+            dep = sys.modules.get(name)
+            if dep is not None:
+                todo.append(dep)
+    return [seen[k] for k in sorted(seen)]
+
+
+def code_hash(stage: Stage) -> str:
+    h = hashlib.sha256()
+    for path in _code_files(stage.module):
+        h.update(path.relative_to(ROOT).as_posix().encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def stage_params(stage: Stage, resolved: dict) -> dict:
+    return {s: config.as_dict(resolved[s]) for s in stage.sections}
+
+
+def compute_fingerprints(stages: dict[str, Stage], resolved: dict, scene) -> dict[str, dict]:
+    """Per stage: fingerprint and the ingredients that made it (for status and params-diff)."""
+    out: dict[str, dict] = {}
+    for name, stage in stages.items():
+        ingredients = {
+            "params": stage_params(stage, resolved),
+            "code": code_hash(stage),
+            "upstream": {u: out[u]["fingerprint"] for u in stage.upstream},
+        }
+        if hasattr(stage.module, "input_signature"):
+            ingredients["inputs"] = stage.module.input_signature(scene, resolved[stage.sections[0]])
+        blob = json.dumps(ingredients, sort_keys=True, default=str).encode()
+        ingredients["fingerprint"] = hashlib.sha256(blob).hexdigest()[:12]
+        out[name] = ingredients
+    return out
+
+
+# ---------------------------------------------------------------------------- store
+
+
+class Store:
+    """Versioned artifacts of one scene."""
+
+    def __init__(self, root: Path, scene_name: str):
+        self.scene_dir = Path(root) / scene_name
+
+    def stage_dir(self, stage: str) -> Path:
+        return self.scene_dir / stage
+
+    def version_dir(self, stage: str, fingerprint: str) -> Path:
+        return self.stage_dir(stage) / fingerprint
+
+    def is_complete(self, stage: str, fingerprint: str) -> bool:
+        return (self.version_dir(stage, fingerprint) / MANIFEST).is_file()
+
+    def current(self, stage: str) -> str | None:
+        link = self.stage_dir(stage) / "current"
+        if not link.is_symlink():
+            return None
+        fp = os.readlink(link)
+        return fp if self.is_complete(stage, fp) else None
+
+    def set_current(self, stage: str, fingerprint: str) -> None:
+        tmp = self.stage_dir(stage) / f".current-{os.getpid()}"
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        os.symlink(fingerprint, tmp)
+        os.replace(tmp, self.stage_dir(stage) / "current")
+
+    def manifest(self, stage: str, fingerprint: str | None = None) -> dict | None:
+        fingerprint = fingerprint or self.current(stage)
+        if fingerprint is None:
+            return None
+        return json.loads((self.version_dir(stage, fingerprint) / MANIFEST).read_text())
+
+    @contextlib.contextmanager
+    def lock(self):
+        self.scene_dir.mkdir(parents=True, exist_ok=True)
+        path = self.scene_dir / ".lock"
+        with open(path, "a+") as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                f.seek(0)
+                holder = f.read().strip() or "?"
+                raise PipelineError(
+                    f"another run holds the lock on {self.scene_dir} (pid {holder}); wait for it to finish "
+                    f"or stop it. Two runs on one scene would overwrite each other's 'current' pointers."
+                ) from None
+            f.seek(0)
+            f.truncate()
+            f.write(str(os.getpid()))
+            f.flush()
+            try:
+                yield
+            finally:
+                f.seek(0)
+                f.truncate()
+                fcntl.flock(f, fcntl.LOCK_UN)
+
+
+# ---------------------------------------------------------------------------- running
+
+
+class _PeakMemory:
+    """Samples this process's RSS in a thread: the peak over one stage (MiB)."""
+
+    def __init__(self, interval: float = 0.1):
+        import psutil
+
+        self.proc = psutil.Process()
+        self.peak = self.proc.memory_info().rss
+        self.interval = interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+
+    def _loop(self):
+        while not self._stop.wait(self.interval):
+            self.peak = max(self.peak, self.proc.memory_info().rss)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, self.proc.memory_info().rss)
+
+
+class Context:
+    """What a stage's ``run(ctx)`` sees; see docs/STAGES.md."""
+
+    def __init__(self, stage: Stage, resolved: dict, store: Store, upstream_fps: dict, out: Path, scene, log):
+        self.stage = stage
+        self.params = resolved[stage.sections[0]]
+        self._resolved = resolved
+        self._store = store
+        self._upstream = upstream_fps
+        self.out = out
+        self.scene = scene.name
+        self.scene_ref = scene
+        self.log = log
+        self.metrics: dict = {}
+
+    def section(self, name: str):
+        if name not in self.stage.sections:
+            raise PipelineError(f"stage {self.stage.name} reads section {name!r} without declaring it in SECTIONS")
+        return self._resolved[name]
+
+    def input(self, name: str) -> Path:
+        if name not in self._upstream:
+            raise PipelineError(f"stage {self.stage.name} may only read its declared upstream {sorted(self._upstream)}, not {name!r}")
+        return self._store.version_dir(name, self._upstream[name])
+
+    def progress(self, iterable=None, **kwargs):
+        from tqdm import tqdm
+
+        kwargs.setdefault("desc", self.stage.name)
+        kwargs.setdefault("leave", False)
+        kwargs.setdefault("dynamic_ncols", True)
+        return tqdm(iterable, **kwargs)
+
+
+def _library_versions() -> dict:
+    out = {"python": sys.version.split()[0]}
+    for name in LIBRARIES:
+        mod = sys.modules.get(name)
+        if mod is not None:
+            out[name] = getattr(mod, "__version__", "?")
+    return out
+
+
+def _stage_logger(stage: str, path: Path) -> tuple[logging.Logger, logging.Handler]:
+    log = logging.getLogger(f"manifoldneus.{stage}")
+    log.setLevel(logging.INFO)
+    handler = logging.FileHandler(path)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    log.addHandler(handler)
+    return log, handler
+
+
+def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Path:
+    """Run one stage into a temporary folder, then rename it into place."""
+    fp = fps[stage.name]["fingerprint"]
+    final = store.version_dir(stage.name, fp)
+    tmp = store.stage_dir(stage.name) / f".tmp-{fp}-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    log, handler = _stage_logger(stage.name, tmp / "log.txt")
+    ctx = Context(stage, resolved, store, fps[stage.name]["upstream"], tmp, scene, log)
+    log.info("stage %s, scene %s, fingerprint %s", stage.name, scene.name, fp)
+    started = time.time()
+    cpu0 = time.process_time()
+    try:
+        with _PeakMemory() as mem:
+            stage.module.run(ctx)
+        missing = [o for o in stage.outputs if not (tmp / o).exists()]
+        if missing:
+            raise PipelineError(f"stage {stage.name} did not write its declared outputs {missing}")
+        manifest = {
+            "stage": stage.name,
+            "scene": scene.name,
+            "fingerprint": fp,
+            "profile": resolved["_profile"],
+            "preset": resolved["_preset"],
+            "params": fps[stage.name]["params"],
+            "code": fps[stage.name]["code"],
+            "upstream": fps[stage.name]["upstream"],
+            "inputs": fps[stage.name].get("inputs"),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(started)),
+            "wall_seconds": round(time.time() - started, 3),
+            "cpu_seconds": round(time.process_time() - cpu0, 3),
+            "peak_rss_mib": round(mem.peak / 2**20, 1),
+            "libraries": _library_versions(),
+            "metrics": ctx.metrics,
+            "outputs": sorted(p.name for p in tmp.iterdir() if p.name not in (MANIFEST,)),
+        }
+        log.info("done in %.1f s, peak %.0f MiB", manifest["wall_seconds"], manifest["peak_rss_mib"])
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
+    except BaseException:
+        log.exception("stage %s failed; nothing was published", stage.name)
+        handler.close()
+        log.removeHandler(handler)
+        failed = store.stage_dir(stage.name) / f".failed-{fp}"
+        shutil.rmtree(failed, ignore_errors=True)
+        tmp.rename(failed)  # kept for its log.txt; never looks complete (no rename to the fingerprint)
+        raise
+    handler.close()
+    log.removeHandler(handler)
+    if final.exists():  # an older incomplete or forced-over version
+        shutil.rmtree(final)
+    tmp.rename(final)
+    return final
+
+
+def select(stages: dict[str, Stage], until: str | None, only: str | None) -> list[str]:
+    names = list(stages)
+    for flag, value in (("--until", until), ("--only", only)):
+        if value is not None and value not in stages:
+            raise PipelineError(f"unknown stage {value!r} for {flag} (stages: {', '.join(names)})")
+    if only:
+        return [only]
+    if until:
+        return names[: names.index(until) + 1]
+    return names
+
+
+def run(
+    scene_name: str,
+    until: str | None = None,
+    only: str | None = None,
+    overrides: list[str] = (),
+    force: list[str] = (),
+    profile: str | None = None,
+    preset: str | None = None,
+    artifacts: Path = DEFAULT_ARTIFACTS,
+    params_path: Path = DEFAULT_PARAMS,
+    data_root: Path | None = None,
+) -> dict[str, str]:
+    """Bring the selected stages up to date. Returns stage -> 'computed' | 'reused'."""
+    stages = load_stages()
+    for f in force:
+        if f not in stages:
+            raise PipelineError(f"unknown stage {f!r} for --force (stages: {', '.join(stages)})")
+    scene = resolve_scene(scene_name, data_root)
+    resolved = resolve_params(stages, params_path, overrides, profile, preset)
+    fps = compute_fingerprints(stages, resolved, scene)
+    store = Store(artifacts, scene.name)
+    selected = select(stages, until, only)
+    report: dict[str, str] = {}
+    with store.lock():
+        for name in selected:
+            stage = stages[name]
+            fp = fps[name]["fingerprint"]
+            for up in stage.upstream:
+                if up not in selected and not store.is_complete(up, fps[up]["fingerprint"]):
+                    raise PipelineError(
+                        f"stage {name} needs {up} with the current parameters, which has not been computed; "
+                        f"run: python pipeline.py run --scene {scene_name} --until {name}"
+                    )
+            if store.is_complete(name, fp) and name not in force:
+                store.set_current(name, fp)
+                report[name] = "reused"
+                print(f"[{name}] up to date ({fp})", file=sys.stderr)
+                continue
+            print(f"[{name}] running ({fp}) ...", file=sys.stderr)
+            execute(stage, resolved, store, fps, scene)
+            store.set_current(name, fp)
+            manifest = store.manifest(name, fp)
+            report[name] = "computed"
+            print(f"[{name}] done in {manifest['wall_seconds']:.1f} s, peak {manifest['peak_rss_mib']:.0f} MiB",
+                  file=sys.stderr)
+    return report
+
+
+# ---------------------------------------------------------------------------- inspection
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def explain(stage: str, fps: dict, store: Store) -> tuple[str, list[str]]:
+    """(state, reasons): state is fresh | stale | cached | missing."""
+    expected = fps[stage]["fingerprint"]
+    current = store.current(stage)
+    if current == expected:
+        return "fresh", []
+    if current is None:
+        if store.is_complete(stage, expected):
+            return "cached", ["a complete version for these parameters exists; `run` reuses it"]
+        return "missing", ["never computed"]
+    old = store.manifest(stage, current)
+    reasons = []
+    now_p, old_p = _flatten(fps[stage]["params"]), _flatten(old.get("params", {}))
+    for key in sorted(set(now_p) | set(old_p)):
+        if now_p.get(key, "<absent>") != old_p.get(key, "<absent>"):
+            reasons.append(f"param {key}: {old_p.get(key, '<absent>')!r} -> {now_p.get(key, '<absent>')!r}")
+    if old.get("code") != fps[stage]["code"]:
+        reasons.append("code of the stage (or a module it uses) changed")
+    for up, fp in fps[stage]["upstream"].items():
+        if old.get("upstream", {}).get(up) != fp:
+            reasons.append(f"upstream {up} changed")
+    if old.get("inputs") != fps[stage].get("inputs"):
+        reasons.append("input files changed")
+    if store.is_complete(stage, expected):
+        reasons.append("a complete version for the new parameters exists and will be reused")
+    return "stale", reasons or ["fingerprint differs"]
+
+
+def status(scene_name, overrides=(), profile=None, preset=None, artifacts=DEFAULT_ARTIFACTS,
+           params_path=DEFAULT_PARAMS, data_root=None) -> dict[str, tuple[str, list[str]]]:
+    stages = load_stages()
+    scene = resolve_scene(scene_name, data_root)
+    resolved = resolve_params(stages, params_path, overrides, profile, preset)
+    fps = compute_fingerprints(stages, resolved, scene)
+    store = Store(artifacts, scene.name)
+    return {name: explain(name, fps, store) for name in stages}
+
+
+def describe_artifact(path: Path) -> list[str]:
+    from manifoldneus import io
+
+    lines = []
+    for item in sorted(path.iterdir()):
+        if item.suffix == ".zarr":
+            import zarr
+
+            group = zarr.open_group(str(item), mode="r")
+            lines.append(f"  {item.name}/")
+            for name, arr in sorted(group.arrays()):
+                lines.append(f"      {name:<20} {str(arr.dtype):<8} {list(arr.shape)}")
+            if group.attrs:
+                lines.append(f"      attrs: {json.dumps(dict(group.attrs), default=str)[:200]}")
+        elif item.is_dir():
+            n = sum(1 for _ in item.rglob("*") if _.is_file())
+            lines.append(f"  {item.name}/ ({n} files)")
+        else:
+            lines.append(f"  {item.name:<28} {item.stat().st_size / 1024:9.1f} KiB")
+    del io
+    return lines
+
+
+def show(scene_name: str, stage: str, artifacts=DEFAULT_ARTIFACTS, data_root=None) -> str:
+    stages = load_stages()
+    if stage not in stages:
+        raise PipelineError(f"unknown stage {stage!r} (stages: {', '.join(stages)})")
+    scene = resolve_scene(scene_name, data_root)
+    store = Store(artifacts, scene.name)
+    fp = store.current(stage)
+    if fp is None:
+        raise PipelineError(f"stage {stage} has no current version for scene {scene.name}; run it first")
+    m = store.manifest(stage, fp)
+    path = store.version_dir(stage, fp)
+    out = [
+        f"{stage} @ {fp}   ({path})",
+        f"profile {m.get('profile')}, preset {m.get('preset')}, started {m['started']}, "
+        f"wall {m['wall_seconds']} s, cpu {m['cpu_seconds']} s, peak {m['peak_rss_mib']} MiB",
+        f"upstream: {m['upstream']}",
+        "params:",
+    ]
+    out += [f"  {k} = {v!r}" for k, v in _flatten(m["params"]).items()]
+    out.append("metrics:")
+    out += [f"  {k} = {v}" for k, v in _flatten(m["metrics"]).items()]
+    out.append("files:")
+    out += describe_artifact(path)
+    return "\n".join(out)
+
+
+def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None) -> list[Path]:
+    """Delete versions that no `current` pointer names, and leftovers of interrupted runs."""
+    removed = []
+    scenes = [Path(artifacts) / scene_name] if scene_name else sorted(p for p in Path(artifacts).glob("*") if p.is_dir())
+    for scene_dir in scenes:
+        store = Store(Path(artifacts), scene_dir.name)
+        with store.lock():
+            for stage_dir in sorted(p for p in scene_dir.iterdir() if p.is_dir()):
+                keep = store.current(stage_dir.name)
+                for version in stage_dir.iterdir():
+                    if version.name == "current" or version.name == keep or version.is_symlink():
+                        continue
+                    shutil.rmtree(version, ignore_errors=True)
+                    removed.append(version)
+    return removed
+
+
+# ---------------------------------------------------------------------------- CLI
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="pipeline.py", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp, params=True):
+        sp.add_argument("--scene", default="synthetic", help="scene name (synthetic, synthetic-<seed>, scan24, ...) or a folder")
+        sp.add_argument("--data-root", type=Path, default=None, help="data root (default $MANIFOLDNEUS_DATA or ../shared/data)")
+        sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS)
+        if params:
+            sp.add_argument("--params", type=Path, default=DEFAULT_PARAMS)
+            sp.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
+            sp.add_argument("--profile", default=None, help="fast | paper (default: params.yaml's `profile`)")
+            sp.add_argument("--preset", default=None, help="a named preset from params.yaml (e.g. neus-barf)")
+
+    sp = sub.add_parser("run", help="bring stages up to date")
+    common(sp)
+    g = sp.add_mutually_exclusive_group()
+    g.add_argument("--until", help="run every stage up to and including this one")
+    g.add_argument("--only", help="run just this stage (its upstream must be up to date)")
+    sp.add_argument("--force", action="append", default=[], metavar="STAGE", help="recompute even if cached")
+    sp = sub.add_parser("status", help="which stages are fresh, stale, cached or missing, and why")
+    common(sp)
+    sp = sub.add_parser("show", help="what a stage's current artifact holds")
+    common(sp, params=False)
+    sp.add_argument("stage")
+    sp = sub.add_parser("params-diff", help="what changed since a stage's current version")
+    common(sp)
+    sp.add_argument("stage")
+    sp = sub.add_parser("gc", help="delete artifact versions no longer current")
+    sp.add_argument("--scene", default=None)
+    sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        if args.command == "run":
+            run(args.scene, args.until, args.only, args.overrides, args.force, args.profile, args.preset,
+                args.artifacts, args.params, args.data_root)
+        elif args.command == "status":
+            for name, (state, reasons) in status(args.scene, args.overrides, args.profile, args.preset,
+                                                 args.artifacts, args.params, args.data_root).items():
+                print(f"{name:<18} {state:<8} {'; '.join(reasons)}")
+        elif args.command == "show":
+            print(show(args.scene, args.stage, args.artifacts, args.data_root))
+        elif args.command == "params-diff":
+            states = status(args.scene, args.overrides, args.profile, args.preset, args.artifacts, args.params,
+                            args.data_root)
+            if args.stage not in states:
+                raise PipelineError(f"unknown stage {args.stage!r} (stages: {', '.join(states)})")
+            state, reasons = states[args.stage]
+            print(f"{args.stage}: {state}")
+            for r in reasons:
+                print(f"  {r}")
+        elif args.command == "gc":
+            removed = gc(args.artifacts, args.scene)
+            print(f"removed {len(removed)} old version(s)")
+    except (PipelineError, ParamError, SceneError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

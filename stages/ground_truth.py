@@ -1,0 +1,35 @@
+"""ground_truth: GT poses (object-normalised frame), normalisation and exact surface, kept apart.
+
+Only the stages in GROUND_TRUTH_READERS (stages/__init__.py) may read this artifact; everything
+the method computes is blind to it. Scenes without GT write ``gt.json`` with ``has_poses: false``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from manifoldneus import io, scenes
+from stages.ingest import Params, input_signature  # same section: what to read and how  # noqa: F401
+
+UPSTREAM = ("ingest",)
+SECTIONS = ("ingest",)
+OUTPUTS = ("gt.json",)
+
+
+def run(ctx) -> None:
+    gt = scenes.read_ground_truth(ctx.scene_ref, ctx.params)
+    names = io.load_json(ctx.input("ingest") / "views.json")["names"]
+    if gt is None:
+        ctx.log.info("scene has no ground-truth poses; evaluation will report what it can without them")
+        io.save_json(ctx.out / "gt.json", {"has_poses": False, "has_surface": False, "units": None})
+        ctx.metrics["has_poses"] = False
+        return
+    if len(gt["w2c"]) != len(names):
+        raise scenes.SceneError(f"{len(gt['w2c'])} ground-truth poses for {len(names)} views")
+    arrays = {k: gt[k] for k in ("w2c", "normalization")}
+    if "surface_points" in gt:
+        arrays["surface_points"] = gt["surface_points"]
+    io.save_arrays(ctx.out / "poses.zarr", arrays, chunk_first=False)
+    scale = float(abs(np.linalg.det(gt["normalization"][:3, :3])) ** (1 / 3))
+    io.save_json(ctx.out / "gt.json", {"has_poses": True, "has_surface": "surface_points" in gt,
+                                       "units": gt["units"], "units_per_scene_unit": scale})
+    ctx.metrics.update(has_poses=True, units=gt["units"])

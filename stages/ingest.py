@@ -1,0 +1,73 @@
+"""ingest: read a scene (any supported layout) into the canonical views artifact.
+
+Writes no poses: ground truth goes to the separate `ground_truth` stage (see docs/STAGES.md).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from manifoldneus import io, scenes
+from manifoldneus.config import param
+
+
+@dataclass
+class Params:
+    """Section `ingest` of params.yaml."""
+
+    layout: str = param("auto", "Input layout; auto detects it",
+                        choices=["auto", "monosdf", "idr", "colmap", "images"])
+    downscale: int = param(1, "Integer factor to shrink images (and K, masks, priors) by", lo=1, hi=16)
+    load_masks: bool = param(True, "Read foreground masks when the layout has them")
+    load_priors: bool = param(True, "Read monocular depth/normal priors when the layout has them")
+    intrinsics: list[float] = param([], "[fx, fy, cx, cy] for a plain image folder; empty = pycolmap's estimate")
+    monosdf_original_size: list[int] = param([1600, 1200], "MonoSDF: size of the original images that "
+                                             "world_mat projects into (centre-cropped to a square, resized)")
+    synthetic_views: int = param(49, "Synthetic scene: number of views", lo=2, hi=400)
+    synthetic_resolution: int = param(192, "Synthetic scene: image side in pixels", lo=32, hi=1024)
+    synthetic_surface_points: int = param(200000, "Synthetic scene: exact surface samples for Chamfer", lo=1000)
+
+
+UPSTREAM = ()
+SECTIONS = ("ingest",)
+OUTPUTS = ("views.zarr", "views.json", "contact_sheet.png")
+
+
+def input_signature(scene, p: Params) -> str:
+    return scenes.input_signature(scene)
+
+
+def contact_sheet(images: np.ndarray, masks: np.ndarray | None, columns: int = 10, side: int = 96) -> np.ndarray:
+    """Thumbnails of every view (masked-out background dimmed), for a quick look."""
+    import cv2
+
+    n = len(images)
+    rows = (n + columns - 1) // columns
+    sheet = np.zeros((rows * side, columns * side, 3), np.uint8)
+    for i, im in enumerate(images):
+        thumb = im if masks is None else np.where(masks[i][..., None], im, im // 3)
+        thumb = cv2.resize(thumb, (side, side), interpolation=cv2.INTER_AREA)
+        r, c = divmod(i, columns)
+        sheet[r * side:(r + 1) * side, c * side:(c + 1) * side] = thumb
+    return sheet
+
+
+def run(ctx) -> None:
+    p: Params = ctx.params
+    views = scenes.read_views(ctx.scene_ref, p)
+    names = views.pop("names")
+    layout = views.pop("layout")
+    n, h, w = views["images"].shape[:3]
+    ctx.log.info("read %d views of %dx%d (%s layout): %s", n, w, h, layout,
+                 ", ".join(k for k in ("masks", "mono_depth", "mono_normal") if k in views) or "no masks or priors")
+    io.save_arrays(ctx.out / "views.zarr", views)
+    io.save_json(ctx.out / "views.json", {
+        "names": names, "height": h, "width": w, "layout": layout,
+        "has_masks": "masks" in views, "has_mono_depth": "mono_depth" in views,
+        "has_mono_normal": "mono_normal" in views,
+        "source": str(ctx.scene_ref.path) if ctx.scene_ref.path else ctx.scene_ref.name,
+    })
+    io.save_png(ctx.out / "contact_sheet.png", contact_sheet(views["images"], views.get("masks")))
+    ctx.metrics.update(n_views=n, width=w, height=h, layout=layout,
+                       fx_mean=float(views["K"][:, 0, 0].mean()), fy_mean=float(views["K"][:, 1, 1].mean()))
