@@ -28,9 +28,10 @@ def test_random_sim3_of_gt_has_zero_error():
     est = transform_w2c(gt, s, R, t)  # same cameras, another world frame
     res = evaluate_poses(est, gt, units_scale=200.0)
     summ = res["summary"]
-    assert summ["rot_err_deg"]["max"] < 1e-6
+    # arccos-based angles resolve ~1e-6 degrees near zero
+    assert summ["rot_err_deg"]["max"] < 1e-5
     assert summ["center_err"]["max"] < 1e-9
-    assert summ["pre_r_deg"]["max"] < 1e-6 and summ["pre_t_deg"]["max"] < 1e-5
+    assert summ["pre_r_deg"]["max"] < 1e-5 and summ["pre_t_deg"]["max"] < 1e-5
     # the returned alignment inverts the random similarity
     al = res["alignment"]
     M = sim3_matrix(al["s"], al["R"], al["t"]) @ sim3_matrix(s, R, t)
@@ -52,14 +53,14 @@ def test_known_rotation_perturbation_of_one_view():
     res = evaluate_poses(transform_w2c(est, s, R, t), gt)
     rot = res["rot_err_deg"]
     assert rot[4] == pytest.approx(angle, abs=1e-6)
-    assert np.all(np.delete(rot, 4) < 1e-6)
+    assert np.all(np.delete(rot, 4) < 1e-5)
     assert res["summary"]["center_err"]["max"] < 1e-9
     assert res["summary"]["rot_err_deg"]["mean"] == pytest.approx(angle / 12, abs=1e-6)
     # PRE_r: exactly the pairs with view 4 are off by `angle`
     pairs, pre_r = res["pairs"], res["pre_r_deg"]
     with4 = (pairs == 4).any(1)
     assert np.allclose(pre_r[with4], angle, atol=1e-6)
-    assert np.all(pre_r[~with4] < 1e-6)
+    assert np.all(pre_r[~with4] < 1e-5)
     assert len(pairs) == 66
 
 
@@ -94,7 +95,7 @@ def test_centre_error_units_and_percent():
     est[:, :3, 3] = -np.einsum("nij,nj->ni", est[:, :3, :3], Cn)
     res = evaluate_poses(est, gt, units_scale=100.0)
     ce = res["center_err"]
-    assert np.all(ce <= d + 1e-9) and ce.max() > 0.5 * d
+    assert np.allclose(ce, d, rtol=0.05)  # the Sim3 cannot absorb an alternating pattern
     assert np.allclose(res["center_err_units"], ce * 100)
     mean_dist = np.linalg.norm(C - C.mean(0), axis=1).mean()
     assert np.allclose(res["center_err_pct"], ce / mean_dist * 100)

@@ -1,0 +1,81 @@
+"""Shared fixtures: small scenes in every layout, built by the tests themselves."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from manifoldneus import io, scenes  # noqa: E402
+
+SHARED_DATA = scenes.default_data_root()
+needs_dtu = pytest.mark.skipif(not (SHARED_DATA / "dtu" / "scan24").is_dir(), reason="shared DTU data absent")
+
+
+@pytest.fixture(scope="session")
+def tiny_synthetic():
+    from manifoldneus import synthetic
+
+    return synthetic.make_scene(seed=1, n_views=6, resolution=64)
+
+
+@pytest.fixture
+def idr_folder(tmp_path, tiny_synthetic):
+    """An IDR/NeuS layout of the tiny synthetic scene (world = normalised frame, scale_mat = I)."""
+    s = tiny_synthetic
+    root = tmp_path / "idr_scene"
+    (root / "image").mkdir(parents=True)
+    (root / "mask").mkdir()
+    cams = {}
+    for i in range(len(s.images)):
+        io.save_png(root / "image" / f"{i:03d}.png", s.images[i])
+        io.save_png(root / "mask" / f"{i:03d}.png", np.repeat(s.masks[i][..., None], 3, -1).astype(np.uint8) * 255)
+        P = np.eye(4)
+        P[:3, :4] = s.K[i] @ s.w2c[i][:3, :4]
+        cams[f"world_mat_{i}"] = P
+        cams[f"scale_mat_{i}"] = np.eye(4)
+    np.savez(root / "cameras_sphere.npz", **cams)
+    return root
+
+
+@pytest.fixture
+def colmap_folder(tmp_path, tiny_synthetic):
+    """A COLMAP text model (PINHOLE cameras, no points) beside images/."""
+    import roma
+    import torch
+
+    s = tiny_synthetic
+    root = tmp_path / "colmap_scene"
+    (root / "images").mkdir(parents=True)
+    (root / "sparse" / "0").mkdir(parents=True)
+    K = s.K[0]
+    (root / "sparse/0/cameras.txt").write_text(
+        f"1 PINHOLE {s.images.shape[2]} {s.images.shape[1]} {K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}\n")
+    lines = []
+    for i in range(len(s.images)):
+        io.save_png(root / "images" / f"view{i:02d}.png", s.images[i])
+        q = roma.rotmat_to_unitquat(torch.as_tensor(s.w2c[i][:3, :3]))  # xyzw
+        x, y, z, w = q.tolist()
+        t = s.w2c[i][:3, 3]
+        lines.append(f"{i + 1} {w} {x} {y} {z} {t[0]} {t[1]} {t[2]} 1 view{i:02d}.png\n\n")
+    (root / "sparse/0/images.txt").write_text("".join(lines))
+    (root / "sparse/0/points3D.txt").write_text("")
+    return root
+
+
+@pytest.fixture
+def plain_folder(tmp_path, tiny_synthetic):
+    root = tmp_path / "photos"
+    root.mkdir()
+    for i, im in enumerate(tiny_synthetic.images):
+        io.save_png(root / f"IMG_{i:04d}.png", im)
+    return root
+
+
+@pytest.fixture
+def artifacts(tmp_path):
+    return tmp_path / "artifacts"

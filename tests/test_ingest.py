@@ -1,0 +1,131 @@
+"""Ingest of every layout into the canonical form, and its errors on bad input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import pipeline
+from manifoldneus import cameras, io
+from manifoldneus.scenes import SceneError, read_ground_truth, read_views, resolve_scene
+from stages.ingest import Params
+from tests.conftest import SHARED_DATA, needs_dtu
+
+
+def views_of(path, **kw):
+    return read_views(resolve_scene(str(path)), Params(**kw))
+
+
+def gt_of(path, **kw):
+    return read_ground_truth(resolve_scene(str(path)), Params(**kw))
+
+
+@needs_dtu
+def test_monosdf_scan24_intrinsics_and_gt():
+    v = views_of(SHARED_DATA / "dtu" / "scan24", downscale=4)
+    assert v["layout"] == "monosdf" and v["images"].shape == (49, 96, 96, 3)
+    K = v["K"] * 4  # back to 384 px
+    np.testing.assert_allclose(K[:, 0, 0], 925.5, atol=0.1)
+    np.testing.assert_allclose(K[:, 1, 1], 922.6, atol=0.1)
+    np.testing.assert_allclose(K[:, 0, 2], 199.4, atol=0.1)
+    np.testing.assert_allclose(K[:, 1, 2], 198.1, atol=0.1)
+    assert v["masks"].dtype == bool and 0.2 < v["masks"].mean() < 0.9
+    assert v["mono_depth"].shape == (49, 96, 96)
+    np.testing.assert_allclose(np.linalg.norm(v["mono_normal"], axis=-1), 1.0, atol=1e-4)
+    gt = gt_of(SHARED_DATA / "dtu" / "scan24")
+    assert gt["units"] == "mm"
+    # cameras look at the object: the origin of the normalised frame projects inside every image
+    c = np.einsum("nij,j->ni", gt["w2c"][:, :3], [0, 0, 0, 1.0])
+    uv = np.einsum("ij,nj->ni", K[0], c)
+    uv = uv[:, :2] / uv[:, 2:]
+    assert (c[:, 2] > 0).all() and ((uv > 0) & (uv < 384)).all()
+
+
+@needs_dtu
+def test_idr_scan24_matches_monosdf_poses():
+    v = views_of(SHARED_DATA / "dtu" / "scan24_idr", downscale=4, load_masks=False)
+    assert v["layout"] == "idr" and v["images"].shape == (49, 150, 200, 3) and "masks" not in v
+    a = gt_of(SHARED_DATA / "dtu" / "scan24_idr")
+    b = gt_of(SHARED_DATA / "dtu" / "scan24")
+    # same DTU cameras: the rotations agree; centres agree in millimetres
+    np.testing.assert_allclose(a["w2c"][:, :3, :3], b["w2c"][:, :3, :3], atol=1e-4)
+    ca = cameras.camera_centers(a["w2c"]) * a["normalization"][0, 0] + a["normalization"][:3, 3]
+    cb = cameras.camera_centers(b["w2c"]) * b["normalization"][0, 0] + b["normalization"][:3, 3]
+    np.testing.assert_allclose(ca, cb, atol=1e-2)
+
+
+def test_idr_fixture_roundtrip(idr_folder, tiny_synthetic):
+    v = views_of(idr_folder)
+    np.testing.assert_allclose(v["K"], tiny_synthetic.K, atol=1e-6)
+    assert (v["masks"] == tiny_synthetic.masks).all()
+    gt = gt_of(idr_folder)
+    np.testing.assert_allclose(gt["w2c"], tiny_synthetic.w2c, atol=1e-6)
+
+
+def test_colmap_fixture_roundtrip(colmap_folder, tiny_synthetic):
+    v = views_of(colmap_folder)
+    assert v["layout"] == "colmap" and len(v["images"]) == 6
+    np.testing.assert_allclose(v["K"][0], tiny_synthetic.K[0], atol=1e-6)
+    gt = gt_of(colmap_folder)
+    # normalised frame: a similarity of the original; rotations unchanged
+    np.testing.assert_allclose(gt["w2c"][:, :3, :3], tiny_synthetic.w2c[:, :3, :3], atol=1e-6)
+    s = gt["normalization"][0, 0]
+    back = cameras.transform_w2c(gt["w2c"], s, np.eye(3), gt["normalization"][:3, 3])
+    np.testing.assert_allclose(back, tiny_synthetic.w2c, atol=1e-6)
+
+
+def test_plain_folder_given_and_estimated_intrinsics(plain_folder):
+    v = views_of(plain_folder, intrinsics=[100.0, 101.0, 32.0, 31.0])
+    assert v["layout"] == "images" and (v["K"][:, 0, 0] == 100).all() and (v["K"][:, 1, 2] == 31).all()
+    v = views_of(plain_folder)
+    assert v["K"][0, 0, 0] > 0 and abs(v["K"][0, 0, 2] - 32) < 1
+    assert gt_of(plain_folder) is None
+
+
+def test_downscale_scales_intrinsics(idr_folder, tiny_synthetic):
+    v = views_of(idr_folder, downscale=2)
+    assert v["images"].shape[1:3] == (32, 32)
+    np.testing.assert_allclose(v["K"][:, :2], tiny_synthetic.K[:, :2] / 2, atol=1e-6)
+
+
+def test_corrupt_image_is_named(plain_folder):
+    (plain_folder / "IMG_0002.png").write_bytes(b"not a png at all")
+    with pytest.raises(ValueError, match="IMG_0002.png"):
+        views_of(plain_folder)
+
+
+def test_mask_count_mismatch(idr_folder):
+    (idr_folder / "mask" / "003.png").unlink()
+    with pytest.raises(SceneError, match="5 masks in mask/ for 6 images"):
+        views_of(idr_folder)
+
+
+def test_camera_file_without_expected_keys(idr_folder):
+    data = dict(np.load(idr_folder / "cameras_sphere.npz"))
+    del data["world_mat_4"]
+    np.savez(idr_folder / "cameras_sphere.npz", **data)
+    with pytest.raises(SceneError, match=r"lacks \['world_mat_4'\]"):
+        views_of(idr_folder)
+
+
+def test_more_images_than_cameras(idr_folder, tiny_synthetic):
+    io.save_png(idr_folder / "image" / "006.png", tiny_synthetic.images[0])
+    io.save_png(idr_folder / "mask" / "006.png", np.zeros((64, 64, 3), np.uint8))
+    with pytest.raises(SceneError, match="world_mat_6"):
+        views_of(idr_folder)
+
+
+def test_empty_folder_has_no_layout(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SceneError, match="no known layout"):
+        views_of(tmp_path / "empty")
+
+
+def test_synthetic_through_pipeline_and_gt_apart(artifacts):
+    pipeline.run("synthetic-3", until="ground_truth", artifacts=artifacts,
+                 overrides=["ingest.synthetic_views=5", "ingest.synthetic_resolution=48",
+                            "ingest.synthetic_surface_points=1000"])
+    store = pipeline.Store(artifacts, "synthetic-3")
+    views_dir = store.version_dir("ingest", store.current("ingest"))
+    assert "w2c" not in io.array_names(views_dir / "views.zarr")  # no pose leaks into the views
+    gt = io.load_arrays(store.version_dir("ground_truth", store.current("ground_truth")) / "poses.zarr")
+    assert gt["w2c"].shape == (5, 4, 4) and gt["surface_points"].shape == (1000, 3)

@@ -1,0 +1,187 @@
+"""The DAG runner: caching, invalidation, atomic writes, locking, params validation, CLI errors."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import pipeline
+from manifoldneus.config import ParamError
+from manifoldneus.scenes import SceneError
+from tests.conftest import needs_dtu
+
+FAST_SYNTH = ["ingest.synthetic_views=6", "ingest.synthetic_resolution=64", "ingest.synthetic_surface_points=2000"]
+
+
+def test_rerun_reuses_and_param_roundtrip_does_not_recompute(artifacts):
+    first = pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert first == {"ingest": "computed", "ground_truth": "computed"}
+    again = pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert again == {"ingest": "reused", "ground_truth": "reused"}
+
+    changed = FAST_SYNTH + ["ingest.load_masks=false"]
+    st = pipeline.status("synthetic", overrides=changed, artifacts=artifacts)
+    assert st["ingest"][0] == "stale"
+    assert any("ingest.load_masks" in r for r in st["ingest"][1])
+    assert st["ground_truth"][0] == "stale"  # same section, and its upstream changed
+    assert pipeline.run("synthetic", until="ingest", overrides=changed, artifacts=artifacts)["ingest"] == "computed"
+
+    # setting it back: the earlier version is current again without recomputation
+    st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert st["ingest"][0] == "stale" and any("will be reused" in r for r in st["ingest"][1])
+    assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {"ingest": "reused"}
+    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"] == ("fresh", [])
+
+
+@needs_dtu
+def test_scan24_ingest_fresh_stale_fresh(artifacts):
+    assert pipeline.run("scan24", until="ingest", artifacts=artifacts) == {"ingest": "computed"}
+    assert pipeline.status("scan24", artifacts=artifacts)["ingest"] == ("fresh", [])
+    st = pipeline.status("scan24", overrides=["ingest.downscale=2"], artifacts=artifacts)
+    assert st["ingest"][0] == "stale"
+    assert pipeline.run("scan24", until="ingest", overrides=["ingest.downscale=2"], artifacts=artifacts) == {
+        "ingest": "computed"}
+    assert pipeline.run("scan24", until="ingest", artifacts=artifacts) == {"ingest": "reused"}
+    assert pipeline.status("scan24", artifacts=artifacts)["ingest"] == ("fresh", [])
+
+
+def test_failure_mid_write_publishes_nothing_and_rerun_succeeds(artifacts, monkeypatch):
+    import stages.ingest as ingest
+
+    real_run = ingest.run
+
+    def crashing_run(ctx):
+        (ctx.out / "views.json").write_text("{half")  # something half-written
+        raise KeyboardInterrupt("killed mid-write")
+
+    monkeypatch.setattr(ingest, "run", crashing_run)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    store = pipeline.Store(artifacts, "synthetic")
+    assert store.current("ingest") is None
+    versions = [p for p in store.stage_dir("ingest").iterdir() if not p.name.startswith(".")]
+    assert versions == []  # only a .failed-* folder with the log, never a fingerprint folder
+    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "missing"
+
+    monkeypatch.setattr(ingest, "run", real_run)
+    assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {
+        "ingest": "computed"}
+    manifest = store.manifest("ingest")
+    assert manifest["metrics"]["n_views"] == 6 and manifest["peak_rss_mib"] > 0
+
+
+def test_lock_refuses_a_second_run(artifacts):
+    store = pipeline.Store(artifacts, "synthetic")
+    with store.lock():
+        with pytest.raises(pipeline.PipelineError, match="another run holds the lock"):
+            pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+
+
+def test_force_recomputes(artifacts):
+    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    out = pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, force=["ingest"], artifacts=artifacts)
+    assert out == {"ingest": "computed"}
+
+
+def test_code_change_makes_stage_stale(artifacts, monkeypatch):
+    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    monkeypatch.setattr(pipeline, "code_hash", lambda stage: "edited")
+    st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert st["ingest"][0] == "stale" and any("code" in r for r in st["ingest"][1])
+
+
+def test_code_hash_covers_package_modules():
+    stages = pipeline.load_stages()
+    files = {p.name for p in pipeline._code_files(stages["ingest"].module)}
+    assert {"ingest.py", "scenes.py", "io.py", "config.py", "cameras.py"} <= files
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("ingest.nonsense=1", "unknown parameter ingest.nonsense"),
+        ("ingest.downscale=0", "ingest.downscale: 0 is below the minimum 1"),
+        ("ingest.downscale=abc", "ingest.downscale: expected an integer"),
+        ("ingest.layout=zip", "ingest.layout: 'zip' is not one of"),
+        ("nosection.key=1", "unknown section 'nosection'"),
+        ("downscale=2", "expected section.key=value"),
+        ("ingest.load_masks=maybe", "ingest.load_masks: expected true/false"),
+    ],
+)
+def test_bad_set_is_a_clear_error(artifacts, override, message):
+    with pytest.raises(ParamError, match=message):
+        pipeline.run("synthetic", until="ingest", overrides=[override], artifacts=artifacts)
+
+
+def test_unknown_stage_and_profile(artifacts):
+    with pytest.raises(pipeline.PipelineError, match="unknown stage 'featurez'"):
+        pipeline.run("synthetic", until="featurez", artifacts=artifacts)
+    with pytest.raises(ParamError, match="unknown profile"):
+        pipeline.run("synthetic", until="ingest", profile="turbo", artifacts=artifacts)
+
+
+def test_unknown_params_yaml_section(tmp_path, artifacts):
+    bad = tmp_path / "params.yaml"
+    bad.write_text("profile: fast\nprofiles: {fast: {}}\ningestt: {downscale: 2}\n")
+    with pytest.raises(ParamError, match="unknown section 'ingestt'"):
+        pipeline.run("synthetic", until="ingest", params_path=bad, artifacts=artifacts)
+
+
+def test_cli_reports_errors_without_traceback(capsys, artifacts):
+    code = pipeline.main(["run", "--scene", "synthetic", "--until", "nope", "--artifacts", str(artifacts)])
+    assert code == 2 and "unknown stage 'nope'" in capsys.readouterr().err
+    code = pipeline.main(["run", "--scene", "synthetic", "--set", "ingest.downscale=-3", "--artifacts", str(artifacts)])
+    assert code == 2 and "below the minimum" in capsys.readouterr().err
+
+
+def test_cli_status_show_params_diff_gc(capsys, artifacts):
+    args = ["--scene", "synthetic", "--artifacts", str(artifacts)]
+    sets = sum((["--set", s] for s in FAST_SYNTH), [])
+    assert pipeline.main(["run", *args, *sets, "--until", "ground_truth"]) == 0
+    assert pipeline.main(["show", *args, "ingest"]) == 0
+    out = capsys.readouterr().out
+    assert "views.zarr/" in out and "images" in out and "n_views = 6" in out
+    assert pipeline.main(["params-diff", *args, *sets, "--set", "ingest.downscale=2", "ingest"]) == 0
+    assert "ingest.downscale: 1 -> 2" in capsys.readouterr().out
+    assert pipeline.main(["run", *args, *sets, "--set", "ingest.downscale=2", "--until", "ingest"]) == 0
+    assert pipeline.main(["gc", "--artifacts", str(artifacts)]) == 0
+    assert "removed 1 old version" in capsys.readouterr().out
+
+
+def test_ground_truth_is_structurally_private(monkeypatch):
+    import types
+
+    import stages as registry
+
+    sneaky = types.ModuleType("stages.sneaky")
+    sneaky.UPSTREAM, sneaky.SECTIONS, sneaky.OUTPUTS = ("ground_truth",), ("ingest",), ()
+    sneaky.Params = object
+    monkeypatch.setitem(__import__("sys").modules, "stages.sneaky", sneaky)
+    monkeypatch.setattr(registry, "STAGES", ["ingest", "ground_truth", "sneaky"])
+    with pytest.raises(pipeline.PipelineError, match="may not read ground truth"):
+        pipeline.load_stages()
+
+
+def test_context_refuses_undeclared_inputs(artifacts):
+    stages = pipeline.load_stages()
+    resolved = pipeline.resolve_params(stages)
+    ctx = pipeline.Context(stages["ingest"], resolved, pipeline.Store(artifacts, "x"), {}, artifacts, 
+                           pipeline.resolve_scene("synthetic"), None)
+    with pytest.raises(pipeline.PipelineError, match="declared upstream"):
+        ctx.input("ground_truth")
+
+
+def test_missing_scene_and_data_root_say_where_they_looked(tmp_path):
+    with pytest.raises(SceneError, match="does not exist.*synthetic"):
+        pipeline.resolve_scene("scan24", data_root=tmp_path / "nowhere")
+    with pytest.raises(SceneError, match="looked in:.*dtu/scan99"):
+        pipeline.resolve_scene("scan99", data_root=tmp_path)
+
+
+def test_manifest_records_params_versions_and_timing(artifacts):
+    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    path = pipeline.Store(artifacts, "synthetic").version_dir("ingest", pipeline.Store(artifacts, "synthetic").current("ingest"))
+    m = json.loads((path / "manifest.json").read_text())
+    assert m["params"]["ingest"]["synthetic_views"] == 6
+    assert {"numpy", "zarr"} <= set(m["libraries"])
+    assert m["wall_seconds"] >= 0 and (path / "log.txt").read_text().strip()
