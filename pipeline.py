@@ -197,8 +197,11 @@ def compute_fingerprints(stages: dict[str, Stage], resolved: dict, scene) -> dic
 class Store:
     """Versioned artifacts of one scene."""
 
-    def __init__(self, root: Path, scene_name: str):
+    def __init__(self, root: Path, scene_name: str, preset: str | None = None):
         self.scene_dir = Path(root) / scene_name
+        # Versions are shared by fingerprint; each preset keeps its own pointers, so that a
+        # baseline (e.g. neus-barf) never moves the default run's `current`.
+        self.pointer = "current" if preset is None else f"current@{preset}"
 
     def stage_dir(self, stage: str) -> Path:
         return self.scene_dir / stage
@@ -210,7 +213,7 @@ class Store:
         return (self.version_dir(stage, fingerprint) / MANIFEST).is_file()
 
     def current(self, stage: str) -> str | None:
-        link = self.stage_dir(stage) / "current"
+        link = self.stage_dir(stage) / self.pointer
         if not link.is_symlink():
             return None
         fp = os.readlink(link)
@@ -221,7 +224,7 @@ class Store:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         os.symlink(fingerprint, tmp)
-        os.replace(tmp, self.stage_dir(stage) / "current")
+        os.replace(tmp, self.stage_dir(stage) / self.pointer)
 
     def manifest(self, stage: str, fingerprint: str | None = None) -> dict | None:
         fingerprint = fingerprint or self.current(stage)
@@ -287,7 +290,8 @@ class _PeakMemory:
 class Context:
     """What a stage's ``run(ctx)`` sees; see docs/STAGES.md."""
 
-    def __init__(self, stage: Stage, resolved: dict, store: Store, upstream_fps: dict, out: Path, scene, log):
+    def __init__(self, stage: Stage, resolved: dict, store: Store, upstream_fps: dict, out: Path, scene, log,
+                 fingerprint: str = "unversioned"):
         self.stage = stage
         self.params = resolved[stage.sections[0]]
         self._resolved = resolved
@@ -298,6 +302,9 @@ class Context:
         self.scene_ref = scene
         self.log = log
         self.metrics: dict = {}
+        # Survives a failed or interrupted run of this exact version, so long trainings resume;
+        # deleted once the version is published.
+        self.checkpoint_dir = store.stage_dir(stage.name) / f".ckpt-{fingerprint}"
 
     def section(self, name: str):
         if name not in self.stage.sections:
@@ -344,7 +351,7 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     log, handler = _stage_logger(stage.name, tmp / "log.txt")
-    ctx = Context(stage, resolved, store, fps[stage.name]["upstream"], tmp, scene, log)
+    ctx = Context(stage, resolved, store, fps[stage.name]["upstream"], tmp, scene, log, fp)
     log.info("stage %s, scene %s, fingerprint %s", stage.name, scene.name, fp)
     started = time.time()
     cpu0 = time.process_time()
@@ -387,6 +394,7 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
     if final.exists():  # an older incomplete or forced-over version
         shutil.rmtree(final)
     tmp.rename(final)
+    shutil.rmtree(ctx.checkpoint_dir, ignore_errors=True)
     return final
 
 
@@ -422,7 +430,7 @@ def run(
     scene = resolve_scene(scene_name, data_root)
     resolved = resolve_params(stages, params_path, overrides, profile, preset)
     fps = compute_fingerprints(stages, resolved, scene)
-    store = Store(artifacts, scene.name)
+    store = Store(artifacts, scene.name, preset)
     selected = select(stages, until, only)
     report: dict[str, str] = {}
     with store.lock():
@@ -498,7 +506,7 @@ def status(scene_name, overrides=(), profile=None, preset=None, artifacts=DEFAUL
     scene = resolve_scene(scene_name, data_root)
     resolved = resolve_params(stages, params_path, overrides, profile, preset)
     fps = compute_fingerprints(stages, resolved, scene)
-    store = Store(artifacts, scene.name)
+    store = Store(artifacts, scene.name, preset)
     return {name: explain(name, fps, store) for name in stages}
 
 
@@ -525,12 +533,12 @@ def describe_artifact(path: Path) -> list[str]:
     return lines
 
 
-def show(scene_name: str, stage: str, artifacts=DEFAULT_ARTIFACTS, data_root=None) -> str:
+def show(scene_name: str, stage: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=None) -> str:
     stages = load_stages()
     if stage not in stages:
         raise PipelineError(f"unknown stage {stage!r} (stages: {', '.join(stages)})")
     scene = resolve_scene(scene_name, data_root)
-    store = Store(artifacts, scene.name)
+    store = Store(artifacts, scene.name, preset)
     fp = store.current(stage)
     if fp is None:
         raise PipelineError(f"stage {stage} has no current version for scene {scene.name}; run it first")
@@ -559,9 +567,9 @@ def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None) -> li
         store = Store(Path(artifacts), scene_dir.name)
         with store.lock():
             for stage_dir in sorted(p for p in scene_dir.iterdir() if p.is_dir()):
-                keep = store.current(stage_dir.name)
+                keep = {os.readlink(p) for p in stage_dir.iterdir() if p.is_symlink()}
                 for version in stage_dir.iterdir():
-                    if version.name == "current" or version.name == keep or version.is_symlink():
+                    if version.is_symlink() or version.name in keep or version.name.startswith(".ckpt-"):
                         continue
                     shutil.rmtree(version, ignore_errors=True)
                     removed.append(version)
@@ -595,6 +603,7 @@ def _parser() -> argparse.ArgumentParser:
     common(sp)
     sp = sub.add_parser("show", help="what a stage's current artifact holds")
     common(sp, params=False)
+    sp.add_argument("--preset", default=None)
     sp.add_argument("stage")
     sp = sub.add_parser("params-diff", help="what changed since a stage's current version")
     common(sp)
@@ -616,7 +625,7 @@ def main(argv: list[str] | None = None) -> int:
                                                  args.artifacts, args.params, args.data_root).items():
                 print(f"{name:<18} {state:<8} {'; '.join(reasons)}")
         elif args.command == "show":
-            print(show(args.scene, args.stage, args.artifacts, args.data_root))
+            print(show(args.scene, args.stage, args.artifacts, args.data_root, args.preset))
         elif args.command == "params-diff":
             states = status(args.scene, args.overrides, args.profile, args.preset, args.artifacts, args.params,
                             args.data_root)

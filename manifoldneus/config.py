@@ -140,3 +140,20 @@ class RunParams:
     device: str = param("cpu", "torch device for the neural stages: cpu, cuda or cuda:N", choices=None)
     seed: int = param(0, "Random seed of every stochastic step", lo=0)
     threads: int = param(2, "CPU threads for torch and thread pools", lo=1)
+
+
+@dataclasses.dataclass
+class SplitParams:
+    """Section `split` of params.yaml: which views are held out for novel-view evaluation."""
+
+    holdout_every: int = param(8, "Hold out views 0, k, 2k, ... from scheduling and training (0 = none)", lo=0)
+
+
+def holdout_mask(n_views: int, split: SplitParams):
+    """bool [N]: True for held-out views."""
+    import numpy as np
+
+    mask = np.zeros(n_views, bool)
+    if split.holdout_every > 0:
+        mask[:: split.holdout_every] = True
+    return mask

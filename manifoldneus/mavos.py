@@ -16,13 +16,15 @@ Definitions, including the choices the paper leaves open (each one named here an
 * Coverage distances: ``"SE"``: ``d(i, j) = |phi_i - phi_j|``; ``"E"``: Euclidean distance of the
   raw rows of W, ``|W_i - W_j|``.
 * Normalisation over the candidates: ``(x - min) / (max - min)``; when all candidates tie
-  (``max == min``) every candidate gets 1 if the common value is > 0, else 0 (never NaN).
+  (``max == min``, e.g. a single candidate left) every candidate gets 0 (never NaN): a term that
+  cannot rank the candidates credits none of them. (A tie -> 1 rule would give the very last pick of
+  the last round S = 1, i.e. make the least preferred view look the most optimisable.)
 * Greedy picking (strategy ``"mavos"``): with ``O`` the views scheduled so far and each candidate i,
   ``L_i = sum_{j in O} n_ij`` and ``C_i = min_{j in O} d(i, j)``, each normalised over the
   candidates, ``S_i = alpha L_i + (1 - alpha) C_i``; the argmax (ties: lowest index) is added to
-  ``O`` and everything is re-scored. With ``O`` empty (the very first pick), ``L_i`` is ``c_i``
-  normalised and ``C_i = 1`` (distance to an empty set is infinite), so the first anchor is
-  ``argmax c_i`` and its ``S = L = C = 1``.
+  ``O`` and everything is re-scored. With ``O`` empty (the very first pick) the seed is
+  ``argmax c_i`` (ties: lowest index), recorded with ``S = L = C = 1`` (``L_raw = c_i``, ``C_raw = 0``
+  standing for the infinite distance to an empty set).
   Anchors: ``ceil(K/100 * n)`` picks (n = number of schedulable views, i.e. of the largest
   component; at least 1, at most n). Successor rounds r = 1, 2, ...: ``M`` picks each, the last round
   takes the rest (it may hold fewer than M views).
@@ -183,14 +185,14 @@ def coverage_distances(W: np.ndarray, phi: np.ndarray | None, coverage: str = "S
 
 
 def normalise(x: np.ndarray) -> np.ndarray:
-    """Min-max normalise to [0, 1]; all equal -> 1 if the common value is > 0, else 0."""
+    """Min-max normalise to [0, 1] over the candidates; all equal -> 0 for all."""
     x = np.asarray(x, dtype=np.float64)
     if x.size == 0:
         return x.copy()
     lo, hi = float(x.min()), float(x.max())
     if hi > lo:
         return (x - lo) / (hi - lo)
-    return np.full_like(x, 1.0 if hi > 0 else 0.0)
+    return np.zeros_like(x)
 
 
 def _normalise_tie_one(x: np.ndarray) -> np.ndarray:
@@ -342,8 +344,8 @@ def mavos_schedule(
     for r, size in enumerate(sizes):
         for _ in range(size):
             cand = idx[~in_O[idx]]
-            if not picks:
-                Lc = normalise(c[cand])
+            if not picks:  # the seed: argmax c, recorded with S = L = C = 1
+                Lc = (c[cand] == c[cand].max()).astype(np.float64)
                 Cc = np.ones(len(cand))
                 Lraw, Craw = c[cand], np.zeros(len(cand))
             else:

@@ -15,7 +15,7 @@ junctions). So ``mean(|sdf(p)|)`` is the exact accuracy of points on/outside the
 a (slight) underestimate for points inside near the junctions.
 
 The **seed only changes the texture** (a view-independent procedural albedo defined in 3D:
-smooth coloured fBm plus three scales of random coloured dots). Shading is Lambertian with
+smooth coloured value noise plus four scales of random coloured dots). Shading is Lambertian with
 two lights fixed in the world, baked into the colour, so the images are photometrically
 consistent across views. Background: a mild dark-grey vertical gradient, untextured.
 
@@ -214,78 +214,90 @@ def sample_surface(n: int, seed: int = 0) -> np.ndarray:
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
 _PX, _PY, _PZ = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xC2B2AE3D27D4EB4F), np.uint64(0x165667B19E3779F9)
+_S16 = 1.0 / 65536.0
 
 
-def _hash01(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, salt: int) -> np.ndarray:
-    """Deterministic uniform [0,1) per integer lattice cell (splitmix64 finaliser)."""
+def _hash(hx: np.ndarray, hy: np.ndarray, hz: np.ndarray, salt: int) -> np.ndarray:
+    """64-bit hash (splitmix64 finaliser) of pre-multiplied lattice coordinates, uint64 [P]."""
     with np.errstate(over="ignore"):
-        h = (
-            ix.astype(np.int64).view(np.uint64) * _PX
-            ^ iy.astype(np.int64).view(np.uint64) * _PY
-            ^ iz.astype(np.int64).view(np.uint64) * _PZ
-            ^ np.uint64(salt & 0xFFFFFFFFFFFFFFFF)
-        )
+        h = hx ^ hy ^ hz ^ np.uint64(salt)
         h ^= h >> np.uint64(30)
         h *= _M1
         h ^= h >> np.uint64(27)
         h *= _M2
         h ^= h >> np.uint64(31)
-    return (h >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+    return h
 
 
-def _value_noise(p: np.ndarray, salt: int) -> np.ndarray:
-    """Smooth 3D value noise in [0,1], [P,3] -> [P] (lattice spacing 1)."""
+def _lattice(i: np.ndarray, prime: np.uint64) -> np.ndarray:
+    with np.errstate(over="ignore"):
+        return i.astype(np.int64).view(np.uint64) * prime
+
+
+def _fields(h: np.ndarray, k: int) -> list[np.ndarray]:
+    """k (<= 4) independent uniform [0,1) values from the 16-bit fields of a hash."""
+    return [((h >> np.uint64(16 * j)) & np.uint64(0xFFFF)).astype(np.float64) * _S16 for j in range(k)]
+
+
+def _value_noise(p: np.ndarray, salt: int, k: int) -> np.ndarray:
+    """k (<= 4) channels of smooth 3D value noise in [0,1], p [3,P] (lattice spacing 1) -> [k,P]."""
     i0 = np.floor(p)
     f = p - i0
     f = f * f * (3.0 - 2.0 * f)
     i0 = i0.astype(np.int64)
-    out = 0.0
+    lx = (_lattice(i0[0], _PX), _lattice(i0[0] + 1, _PX))
+    ly = (_lattice(i0[1], _PY), _lattice(i0[1] + 1, _PY))
+    lz = (_lattice(i0[2], _PZ), _lattice(i0[2] + 1, _PZ))
+    wx, wy, wz = (1.0 - f[0], f[0]), (1.0 - f[1], f[1]), (1.0 - f[2], f[2])
+    out = np.zeros((k, p.shape[1]))
     for dx in (0, 1):
-        wx = f[:, 0] if dx else 1.0 - f[:, 0]
         for dy in (0, 1):
-            wy = f[:, 1] if dy else 1.0 - f[:, 1]
+            wxy = wx[dx] * wy[dy]
             for dz in (0, 1):
-                wz = f[:, 2] if dz else 1.0 - f[:, 2]
-                out = out + wx * wy * wz * _hash01(i0[:, 0] + dx, i0[:, 1] + dy, i0[:, 2] + dz, salt)
+                w = wxy * wz[dz]
+                for c, v in enumerate(_fields(_hash(lx[dx], ly[dy], lz[dz], salt), k)):
+                    out[c] += w * v
     return out
 
 
 def _hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-    k = np.stack([(5 + h * 6) % 6, (3 + h * 6) % 6, (1 + h * 6) % 6], -1)
-    return v[:, None] - v[:, None] * s[:, None] * np.clip(np.minimum(k, 4 - k), 0, 1)
+    """[P] each -> [3,P]."""
+    k = np.stack([(5 + h * 6) % 6, (3 + h * 6) % 6, (1 + h * 6) % 6])
+    return v - v * s * np.clip(np.minimum(k, 4 - k), 0, 1)
+
+
+# Dot layers: (lattice frequency per unit, min / max radius in cells, probability, edge width
+# in world units ~ one pixel at 192 px, so the texture is band-limited at that resolution).
+DOT_LAYERS = ((7.0, 0.2, 0.4, 1.0), (12.0, 0.18, 0.4, 1.0), (20.0, 0.18, 0.4, 1.0), (34.0, 0.2, 0.4, 1.0))
+DOT_EDGE = 0.0065
 
 
 def albedo(points: np.ndarray, seed: int = 0) -> np.ndarray:
-    """View-independent procedural albedo in [0,1], [P,3] -> [P,3]; the seed picks the texture."""
+    """View-independent procedural albedo in [0,1], [P,3] -> [P,3]; the seed picks the texture
+    (lattice orientation / offset and all random values), not the shape."""
     p = np.asarray(points, dtype=np.float64)
-    rng = np.random.default_rng([seed, 0x5EED])
-    salts = rng.integers(0, 2**62, size=32)
+    rng = np.random.default_rng([int(seed), 0x5EED])
+    salts = [int(s) for s in rng.integers(0, 2**63, size=16, dtype=np.uint64)]
     rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]  # random lattice orientation per seed
-    q = p @ rot + rng.uniform(-10, 10, 3)
-    # smooth coloured base (two octaves of value noise per channel)
-    base = np.empty((len(p), 3))
-    for c in range(3):
-        n = 0.65 * _value_noise(q * 2.5, int(salts[c])) + 0.35 * _value_noise(q * 6.0, int(salts[3 + c]))
-        base[:, c] = n
-    col = 0.25 + 0.6 * base
-    # brightness modulation at a finer scale
-    col *= (0.7 + 0.6 * _value_noise(q * 18.0, int(salts[6])))[:, None]
-    # random coloured dots at three scales (each dot's ball lies inside its lattice cell)
-    for layer, (freq, rmin, rmax, prob) in enumerate(((7.0, 0.18, 0.38, 0.85), (14.0, 0.15, 0.35, 0.8), (26.0, 0.15, 0.3, 0.7))):
+    q = np.ascontiguousarray((p @ rot + rng.uniform(-10, 10, 3)).T)  # [3,P]
+    # smooth coloured base: two octaves of 3-channel value noise, then a finer brightness noise
+    col = 0.25 + 0.6 * (0.65 * _value_noise(q * 2.5, salts[0], 3) + 0.35 * _value_noise(q * 6.0, salts[1], 3))
+    col *= 0.7 + 0.6 * _value_noise(q * 18.0, salts[2], 1)
+    # random coloured dots at four scales (each dot's ball lies inside its lattice cell)
+    for layer, (freq, rmin, rmax, prob) in enumerate(DOT_LAYERS):
         qq = q * freq
         cell = np.floor(qq)
-        ci = cell.astype(np.int64)
-        s0 = int(salts[8 + 6 * layer])
-        h = [_hash01(ci[:, 0], ci[:, 1], ci[:, 2], s0 + k) for k in range(8)]
+        lx, ly, lz = _lattice(cell[0], _PX), _lattice(cell[1], _PY), _lattice(cell[2], _PZ)
+        h = _fields(_hash(lx, ly, lz, salts[3 + layer]), 4) + _fields(_hash(lx, ly, lz, salts[3 + layer] ^ 0x55), 4)
         rad = rmin + (rmax - rmin) * h[0]
-        centre = cell + 0.5 + (np.stack(h[1:4], -1) - 0.5) * (1.0 - 2.0 * rad[:, None])
-        dist = np.linalg.norm(qq - centre, axis=-1)
-        alpha = np.clip((rad - dist) / 0.08 + 0.5, 0.0, 1.0) * (h[4] < prob)
+        off = 0.5 + (np.stack(h[1:4]) - 0.5) * (1.0 - 2.0 * rad)
+        dist = np.sqrt(((qq - cell - off) ** 2).sum(0))
+        alpha = np.clip((rad - dist) / (DOT_EDGE * freq) + 0.5, 0.0, 1.0) * (h[4] < prob)
         dark = h[6] < 0.45  # dark dots or bright saturated dots, for luminance contrast
         v = np.where(dark, 0.05 + 0.2 * h[7], 0.75 + 0.25 * h[7])
         dot = _hsv_to_rgb(h[5], 0.55 + 0.45 * h[7], v)
-        col = col * (1 - alpha[:, None]) + dot * alpha[:, None]
-    return np.clip(col, 0.0, 1.0)
+        col += alpha * (dot - col)
+    return np.clip(col.T, 0.0, 1.0)
 
 
 LIGHTS = (  # (direction towards the light in world, intensity)
@@ -312,7 +324,7 @@ def background(height: int, width: int) -> np.ndarray:
 # --------------------------------------------------------------------------- tracing
 
 
-def trace(origins: np.ndarray, dirs: np.ndarray, eps: float = 1e-7, max_steps: int = 300) -> np.ndarray:
+def trace(origins: np.ndarray, dirs: np.ndarray, eps: float = 1e-6, max_steps: int = 300) -> np.ndarray:
     """Sphere-trace rays against :func:`sdf`. origins, dirs: [R,3] (dirs unit). Returns the
     ray parameter t [R] of the first hit (inf on a miss). Vectorised over rays, with the
     still-marching set compacted at every step."""
@@ -364,34 +376,67 @@ def pixel_rays(K: np.ndarray, w2c: np.ndarray, height: int, width: int, offsets=
     return np.broadcast_to(C, dirs.shape).copy(), dirs, np.stack(dzs)
 
 
+def _edge_pixels(mask: np.ndarray, depth: np.ndarray, rel: float = 0.01) -> np.ndarray:
+    """bool [H,W]: pixels whose 3x3 neighbourhood mixes object / background or jumps in depth."""
+    H, W = mask.shape
+    m = np.pad(mask, 1, mode="edge")
+    d = np.pad(np.where(mask, depth, 0.0), 1, mode="edge")
+    out = np.zeros_like(mask)
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            mn, dn = m[dy : dy + H, dx : dx + W], d[dy : dy + H, dx : dx + W]
+            out |= mn != mask
+            out |= mask & mn & (np.abs(dn - depth) > rel * depth)
+    return out
+
+
 def render_view(K: np.ndarray, w2c: np.ndarray, height: int, width: int, seed: int = 0, supersample: int = 2):
     """Render one view. Returns (image uint8 [H,W,3], mask bool [H,W], depth float32 [H,W],
-    normals float32 [H,W,3] in the camera frame). Mask / depth / normals come from the ray
-    through the pixel centre; the colour averages ``supersample**2`` sub-pixel rays."""
+    normals float32 [H,W,3] in the camera frame, 0 on background).
+
+    Mask / depth / normals come from the ray through the pixel centre (mask = the centre ray
+    hits). Colour: the centre ray's, except on silhouettes and depth discontinuities where it
+    averages ``supersample**2`` traced sub-pixel rays (the texture itself is band-limited)."""
     K = np.asarray(K, np.float64)
     w2c = np.asarray(w2c, np.float64)
-    ss = max(int(supersample), 1)
-    sub = [((i + 0.5) / ss, (j + 0.5) / ss) for j in range(ss) for i in range(ss)]
-    offsets = [(0.5, 0.5)] + ([] if ss == 1 else sub)
-    o, d, dz = pixel_rays(K, w2c, height, width, offsets)
-    S, P = d.shape[:2]
-    t = trace(o.reshape(-1, 3), d.reshape(-1, 3)).reshape(S, P)
+    o, d, dz = pixel_rays(K, w2c, height, width)
+    o, d, dz = o[0], d[0], dz[0]
+    t = trace(o, d)
     hit = np.isfinite(t)
     pts = o[hit] + t[hit][:, None] * d[hit]
     n_world = sdf_normals(pts)
-    rgb = np.zeros((S, P, 3))
+    bg = background(height, width).reshape(-1, 3)
+    rgb = bg.copy()
     rgb[hit] = shade(pts, n_world, seed)
-    bg = background(height, width).reshape(1, P, 3)
-    rgb = np.where(hit[..., None], rgb, bg)
-    colour = rgb[0] if ss == 1 else rgb[1:].mean(0)
-    image = np.clip(np.round(colour * 255.0), 0, 255).astype(np.uint8).reshape(height, width, 3)
-    mask = hit[0].reshape(height, width)
-    depth = np.zeros(P, np.float32)
-    depth[hit[0]] = (t[0][hit[0]] * dz[0][hit[0]]).astype(np.float32)
-    normals = np.zeros((P, 3), np.float32)
-    n_centre = n_world[: int(hit[0].sum())]  # centre rays come first in the boolean order
-    normals[hit[0]] = (n_centre @ w2c[:3, :3].T).astype(np.float32)
-    return image, mask, depth.reshape(height, width), normals.reshape(height, width, 3)
+    depth = np.zeros(height * width)
+    depth[hit] = t[hit] * dz[hit]
+    mask = hit.reshape(height, width)
+    ss = max(int(supersample), 1)
+    if ss > 1:
+        edge = np.nonzero(_edge_pixels(mask, depth.reshape(height, width)).ravel())[0]
+        if len(edge):
+            sub = [((i + 0.5) / ss, (j + 0.5) / ss) for j in range(ss) for i in range(ss)]
+            rows, cols = np.divmod(edge, width)
+            Kinv = np.linalg.inv(K)
+            R = w2c[:3, :3]
+            C = -R.T @ w2c[:3, 3]
+            acc = np.zeros((len(edge), 3))
+            for ox, oy in sub:
+                pix = np.stack([cols + ox, rows + oy, np.ones(len(edge))], 1)
+                dc = pix @ Kinv.T
+                dw = dc @ R
+                dw /= np.linalg.norm(dw, axis=1, keepdims=True)
+                ts = trace(np.broadcast_to(C, dw.shape), dw)
+                hs = np.isfinite(ts)
+                c = bg[edge].copy()
+                ps = C + ts[hs][:, None] * dw[hs]
+                c[hs] = shade(ps, sdf_normals(ps), seed)
+                acc += c
+            rgb[edge] = acc / len(sub)
+    image = np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8).reshape(height, width, 3)
+    normals = np.zeros((height * width, 3), np.float32)
+    normals[hit] = (n_world @ w2c[:3, :3].T).astype(np.float32)
+    return image, mask, depth.astype(np.float32).reshape(height, width), normals.reshape(height, width, 3)
 
 
 # --------------------------------------------------------------------------- cameras
@@ -431,9 +476,21 @@ def camera_positions(n_views: int = 49) -> np.ndarray:
     return np.concatenate(out)
 
 
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def _look_at(eye: np.ndarray) -> np.ndarray:
+    """``cameras.look_at_w2c`` towards the origin, made to show world +z up in the image
+    (rolled by 180 deg if needed: the camera's y axis, image down, must point to -z)."""
+    w2c = look_at_w2c(eye, np.zeros(3), UP)
+    if w2c[1, :3] @ UP > 0:
+        w2c[:2] *= -1.0  # 180 deg roll about the optical axis: flip camera x and y
+    return w2c
+
+
 def camera_poses(n_views: int = 49) -> np.ndarray:
     """World-to-camera poses [N,4,4] looking at the origin, world +z up in the images."""
-    return np.stack([look_at_w2c(c, np.zeros(3), np.array([0.0, 0.0, 1.0])) for c in camera_positions(n_views)])
+    return np.stack([_look_at(c) for c in camera_positions(n_views)])
 
 
 def points_visible(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, height: int, width: int, tol: float = 1e-4) -> np.ndarray:

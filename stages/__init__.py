@@ -1,5 +1,5 @@
 """The pipeline's stages, in order. Each is one module; see docs/STAGES.md."""
-from manifoldneus.config import RunParams
+from manifoldneus.config import RunParams, SplitParams
 
 STAGES = [
     "ingest",
@@ -10,4 +10,4 @@ STAGES = [
 GROUND_TRUTH_READERS = {"evaluate_poses", "evaluate", "reference_surface"}
 
 # Parameter sections used by several stages (a stage's own section is its module's `Params`).
-SHARED_SECTIONS = {"run": RunParams}
+SHARED_SECTIONS = {"run": RunParams, "split": SplitParams}

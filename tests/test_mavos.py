@@ -113,7 +113,8 @@ def test_components_and_connectivity():
 
 
 def test_normalise_ties_no_nan():
-    assert normalise(np.array([3.0, 3.0])).tolist() == [1.0, 1.0]
+    assert normalise(np.array([3.0, 3.0])).tolist() == [0.0, 0.0]
+    assert normalise(np.array([3.0])).tolist() == [0.0]
     assert normalise(np.array([0.0, 0.0])).tolist() == [0.0, 0.0]
     assert normalise(np.array([1.0, 3.0, 2.0])).tolist() == [0.0, 1.0, 0.5]
 
@@ -218,7 +219,10 @@ def test_ties_are_deterministic_and_nan_free():
     for a in (s.S, s.L, s.C, s.s_tilde, s.s_tilde_rounds):
         assert np.all(np.isfinite(a))
     assert s.settings["round_sizes"] == [3, 1, 1, 1]
-    assert np.all(s.L[s.picks[1:]] == 1.0) and np.all(s.C[s.picks[1:]] == 1.0)  # ties -> 1
+    assert np.all(s.L[s.picks[1:]] == 0.0) and np.all(s.C[s.picks[1:]] == 0.0)  # ties -> 0
+    assert s.S[0] == 1.0 and np.all(s.S[s.picks[1:]] == 0.0)
+    assert np.all(s.s_tilde_rounds[1:][s.optimised[1:]] >= 0)
+    assert s.s_tilde[s.picks[-1]] == 0.0  # the single last candidate is not "most optimisable"
     # spectral coverage on a fully degenerate spectrum: still deterministic and finite
     emb = spectral_embedding(W, d=3)
     a = mavos_schedule(W, emb.phi, anchor_percent=50, successors_per_round=1)

@@ -185,3 +185,17 @@ def test_manifest_records_params_versions_and_timing(artifacts):
     assert m["params"]["ingest"]["synthetic_views"] == 6
     assert {"numpy", "zarr"} <= set(m["libraries"])
     assert m["wall_seconds"] >= 0 and (path / "log.txt").read_text().strip()
+
+
+def test_presets_keep_their_own_current_pointers(tmp_path, artifacts):
+    params = tmp_path / "params.yaml"
+    params.write_text("profile: fast\nprofiles: {fast: {}}\npresets: {small: {ingest: {downscale: 2}}}\n")
+    kw = dict(overrides=FAST_SYNTH, artifacts=artifacts, params_path=params, until="ingest")
+    assert pipeline.run("synthetic", **kw) == {"ingest": "computed"}
+    assert pipeline.run("synthetic", preset="small", **kw) == {"ingest": "computed"}
+    default = pipeline.Store(artifacts, "synthetic").current("ingest")
+    small = pipeline.Store(artifacts, "synthetic", "small").current("ingest")
+    assert default != small  # the preset did not move the default run's pointer
+    assert pipeline.status("synthetic", **{k: v for k, v in kw.items() if k != "until"})["ingest"][0] == "fresh"
+    with pytest.raises(ParamError, match="unknown preset 'big'"):
+        pipeline.run("synthetic", preset="big", **kw)
