@@ -97,6 +97,26 @@ def is_connected_subset(W: np.ndarray, subset) -> bool:
     return len(connected_components(sub)) == 1
 
 
+def bottleneck_weight(W: np.ndarray, subset) -> float:
+    """Largest t such that the subgraph induced by ``subset`` with edges ``W >= t`` is connected
+    (the weakest link of its maximum spanning tree); 0 if it is not connected at all, inf for one view."""
+    subset = np.asarray(sorted(set(int(i) for i in subset)), dtype=np.int64)
+    if len(subset) <= 1:
+        return float("inf") if len(subset) == 1 else 0.0
+    sub = np.asarray(W, dtype=np.float64)[np.ix_(subset, subset)]
+    if not is_connected_subset(sub, range(len(subset))):
+        return 0.0
+    weights = np.unique(sub[sub > 0])
+    lo, hi = 0, len(weights) - 1  # weights[lo] always connects; find the largest that does
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if is_connected_subset(np.where(sub >= weights[mid], sub, 0.0), range(len(subset))):
+            lo = mid
+        else:
+            hi = mid - 1
+    return float(weights[lo])
+
+
 # --------------------------------------------------------------------------- spectral embedding
 
 

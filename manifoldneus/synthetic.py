@@ -1,12 +1,14 @@
 """Synthetic DTU-like scene: a textured analytic object with exactly known surface and poses.
 
 The object (fixed shape, independent of the seed) is the union (``min``) of three primitives,
-in the object-normalised world frame (z up, everything inside radius ~0.69 of the origin):
+in the object-normalised world frame (z up, everything within radius 0.6 of the origin,
+see :func:`bounding_box`):
 
-* a rounded box (the "base"), centre (0, 0, -0.22), half extents (0.45, 0.32, 0.18), rounding 0.06;
-* a sphere, centre (-0.2, 0.02, 0.1), radius 0.24, sunk into the top of the box;
-* a torus (a ring standing on the box, its hole facing the cameras), centre (0.25, -0.02, 0.1),
-  axis ~ world y (tilted 14 deg towards x), major radius 0.19, tube radius 0.065.
+* a rounded box (the "base"), centre (0, 0, -0.17), half extents (0.42, 0.3, 0.18), rounding 0.06;
+* a sphere, centre (-0.2, 0.02, 0.15), radius 0.24, sunk into the top of the box;
+* a torus (a ring standing on the box, its hole facing the cameras), centre (0.25, -0.02, 0.15),
+  axis ~ world y (tilted 14 deg towards x), major radius 0.19, tube radius 0.065; it sinks into
+  the box and touches the sphere slightly.
 
 :func:`sdf` is the ``min`` of the three exact primitive SDFs. It is **exact outside the
 object** (and exactly 0 on the surface); inside, where primitives overlap, ``|sdf|`` is a lower
@@ -19,13 +21,15 @@ smooth coloured value noise plus four scales of random coloured dots). Shading i
 two lights fixed in the world, baked into the colour, so the images are photometrically
 consistent across views. Background: a mild dark-grey vertical gradient, untextured.
 
-Cameras (:func:`camera_poses`): three arcs of the upper hemisphere (elevations 20/40/60 deg,
-azimuth spans +-70/+-60/+-45 deg, in front of the object, i.e. on the -y side), distance 3.0,
-looking at the origin with world +z up, ordered serpentine (consecutive indices are neighbours,
-like the DTU robot path). Intrinsics: fx = fy = 2.4 W, principal point at the image centre.
-Conventions are those of :mod:`manifoldneus.cameras` (OpenCV, w2c, pixel centres at +0.5).
-As in DTU, the back and the bottom of the object are never observed: use
-:func:`points_visible` to restrict ground-truth surface samples to the observed part.
+Cameras (:func:`camera_poses`): three arcs of the upper hemisphere in front of the object
+(the -y side): elevations 20/40/60 deg, azimuth spans +-70/+-55/+-45 deg, 24/16/9 views for
+N = 49 (other N: split by arc length, evenly spaced along each arc); distance 3.0, looking at
+the origin with world +z up in the images, ordered serpentine (consecutive indices are
+neighbours, like the DTU robot path). The whole object is in every view (>= 5 px margin).
+Intrinsics: fx = fy = 2.4 W, principal point at the image centre (W/2, H/2). Conventions are
+those of :mod:`manifoldneus.cameras` (OpenCV, w2c, pixel centres at +0.5).
+As in DTU, the back and the bottom of the object are never observed: :func:`points_visible`
+restricts ground-truth surface samples to the observed part.
 """
 from __future__ import annotations
 
@@ -37,12 +41,12 @@ from manifoldneus.cameras import look_at_w2c
 
 # --------------------------------------------------------------------------- shape
 
-BOX_CENTER = np.array([0.0, 0.0, -0.22])
-BOX_HALF = np.array([0.45, 0.32, 0.18])
+BOX_CENTER = np.array([0.0, 0.0, -0.17])
+BOX_HALF = np.array([0.42, 0.3, 0.18])
 BOX_ROUND = 0.06
-SPHERE_CENTER = np.array([-0.2, 0.02, 0.1])
+SPHERE_CENTER = np.array([-0.2, 0.02, 0.15])
 SPHERE_RADIUS = 0.24
-TORUS_CENTER = np.array([0.25, -0.02, 0.1])
+TORUS_CENTER = np.array([0.25, -0.02, 0.15])
 _a = np.array([0.25, 1.0, 0.0])
 TORUS_AXIS = _a / np.linalg.norm(_a)
 TORUS_R = 0.19  # major radius
@@ -61,34 +65,63 @@ def _torus_frame() -> np.ndarray:
 
 TORUS_FRAME = _torus_frame()
 
-# Bounding sphere used by the tracer (the object is inside radius ~0.69).
-BOUND_RADIUS = 0.75
+_BOX_INNER = BOX_HALF - BOX_ROUND
+
+
+def _box3(x, y, z):
+    qx = np.abs(x - BOX_CENTER[0]) - _BOX_INNER[0]
+    qy = np.abs(y - BOX_CENTER[1]) - _BOX_INNER[1]
+    qz = np.abs(z - BOX_CENTER[2]) - _BOX_INNER[2]
+    inside = np.minimum(np.maximum(np.maximum(qx, qy), qz), 0.0)
+    np.maximum(qx, 0.0, out=qx)
+    np.maximum(qy, 0.0, out=qy)
+    np.maximum(qz, 0.0, out=qz)
+    return np.sqrt(qx * qx + qy * qy + qz * qz) + inside - BOX_ROUND
+
+
+def _sphere3(x, y, z):
+    dx, dy, dz = x - SPHERE_CENTER[0], y - SPHERE_CENTER[1], z - SPHERE_CENTER[2]
+    return np.sqrt(dx * dx + dy * dy + dz * dz) - SPHERE_RADIUS
+
+
+def _torus3(x, y, z):
+    dx, dy, dz = x - TORUS_CENTER[0], y - TORUS_CENTER[1], z - TORUS_CENTER[2]
+    F = TORUS_FRAME  # local coordinates q_j = sum_i d_i F[i, j]; torus axis = local y
+    qx = F[0, 0] * dx + F[1, 0] * dy + F[2, 0] * dz
+    qy = F[0, 1] * dx + F[1, 1] * dy + F[2, 1] * dz
+    qz = F[0, 2] * dx + F[1, 2] * dy + F[2, 2] * dz
+    ring = np.sqrt(qx * qx + qz * qz) - TORUS_R
+    return np.sqrt(ring * ring + qy * qy) - TORUS_r
+
+
+def _sdf3(x, y, z):
+    """Union SDF on separate coordinate arrays (the tracer's layout)."""
+    return np.minimum(np.minimum(_box3(x, y, z), _sphere3(x, y, z)), _torus3(x, y, z))
+
+
+def _split(p: np.ndarray):
+    p = np.asarray(p, dtype=np.float64)
+    return p[..., 0], p[..., 1], p[..., 2]
 
 
 def _sdf_box(p: np.ndarray) -> np.ndarray:
-    q = np.abs(p - BOX_CENTER) - (BOX_HALF - BOX_ROUND)
-    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
-    inside = np.minimum(q.max(-1), 0.0)
-    return outside + inside - BOX_ROUND
+    return _box3(*_split(p))
 
 
 def _sdf_sphere(p: np.ndarray) -> np.ndarray:
-    return np.linalg.norm(p - SPHERE_CENTER, axis=-1) - SPHERE_RADIUS
+    return _sphere3(*_split(p))
 
 
 def _sdf_torus(p: np.ndarray) -> np.ndarray:
-    q = (p - TORUS_CENTER) @ TORUS_FRAME  # local coordinates, axis = local y
-    ring = np.sqrt(q[..., 0] ** 2 + q[..., 2] ** 2) - TORUS_R
-    return np.sqrt(ring**2 + q[..., 1] ** 2) - TORUS_r
+    return _torus3(*_split(p))
 
 
 def sdf(points: np.ndarray) -> np.ndarray:
-    """Signed distance of the object, [P,3] -> [P] (negative inside).
+    """Signed distance of the object, [P,3] (or [...,3]) -> [P] (negative inside).
 
     Exact outside the object and on it; inside it is a lower bound of the distance (min of
     exact primitive SDFs). The shape does not depend on any seed."""
-    p = np.asarray(points, dtype=np.float64)
-    return np.minimum(np.minimum(_sdf_box(p), _sdf_sphere(p)), _sdf_torus(p))
+    return _sdf3(*_split(points))
 
 
 def sdf_normals(points: np.ndarray, eps: float = 1e-5) -> np.ndarray:
@@ -324,35 +357,67 @@ def background(height: int, width: int) -> np.ndarray:
 # --------------------------------------------------------------------------- tracing
 
 
-def trace(origins: np.ndarray, dirs: np.ndarray, eps: float = 1e-6, max_steps: int = 300) -> np.ndarray:
-    """Sphere-trace rays against :func:`sdf`. origins, dirs: [R,3] (dirs unit). Returns the
-    ray parameter t [R] of the first hit (inf on a miss). Vectorised over rays, with the
-    still-marching set compacted at every step."""
-    o = np.asarray(origins, np.float64)
-    d = np.asarray(dirs, np.float64)
-    R = len(o)
-    t_hit = np.full(R, np.inf)
-    # entry / exit of the bounding sphere
-    b = np.einsum("ij,ij->i", o, d)
-    c = np.einsum("ij,ij->i", o, o) - BOUND_RADIUS**2
-    disc = b * b - c
-    act = np.nonzero(disc > 0)[0]
-    sq = np.sqrt(disc[act])
-    t = np.maximum(-b[act] - sq, 0.0)
-    t_far = -b[act] + sq
-    oa, da = o[act], d[act]
+def trace(
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    t_max: np.ndarray | float = np.inf,
+    eps: float = 1e-6,
+    min_step: float = 1e-4,
+    max_steps: int = 300,
+) -> np.ndarray:
+    """Sphere-trace rays against :func:`sdf`. origins, dirs: [R,3] (dirs unit); t_max: scalar
+    or [R], the ray length searched. Returns the ray parameter t [R] of the first hit (inf on a
+    miss), accurate to ~eps along the normal.
+
+    Steps are ``max(sdf, min_step)`` so that rays grazing a surface do not stall (a graze
+    closer than ``min_step`` may be passed; an overshoot into the object is walked back with
+    interior SDF steps, which never cross the entry point). Vectorised over rays, with the
+    still-marching set compacted as rays finish."""
+    o = np.asarray(origins, np.float64).reshape(-1, 3)
+    d = np.asarray(dirs, np.float64).reshape(-1, 3)
+    t_hit = np.full(len(o), np.inf)
+    # entry / exit of the (slightly padded) bounding box: slab test
+    lo, hi = bounding_box()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t0 = (lo - 1e-3 - o) * inv
+        t1 = (hi + 1e-3 - o) * inv
+    t_near = np.nan_to_num(np.minimum(t0, t1), nan=-np.inf).max(1)
+    t_exit = np.nan_to_num(np.maximum(t0, t1), nan=np.inf).min(1)
+    t_near = np.maximum(t_near, 0.0)
+    t_exit = np.minimum(t_exit, np.broadcast_to(np.asarray(t_max, np.float64), t_exit.shape))
+    act = np.nonzero(t_near < t_exit)[0]
+    t, t_far = t_near[act], t_exit[act]
+    ox, oy, oz = (np.ascontiguousarray(o[act, k]) for k in range(3))
+    dx, dy, dz = (np.ascontiguousarray(d[act, k]) for k in range(3))
+    hits = []  # (ray index, t) of rays that reached or crossed the surface
     for _ in range(max_steps):
         if len(act) == 0:
             break
-        dist = sdf(oa + t[:, None] * da)
+        dist = _sdf3(ox + t * dx, oy + t * dy, oz + t * dz)
         hit = dist < eps
-        t_hit[act[hit]] = t[hit]
-        live = ~hit & (t + dist <= t_far)
-        act, t, t_far, oa, da = act[live], (t + dist)[live], t_far[live], oa[live], da[live]
-    if len(act):  # not converged: accept only rays that ended essentially on the surface
-        dist = sdf(oa + t[:, None] * da)
+        if hit.any():
+            hits.append((act[hit], t[hit]))
+        t += np.maximum(dist, min_step)
+        live = ~hit & (t <= t_far)
+        if not live.all():
+            act, t, t_far = act[live], t[live], t_far[live]
+            ox, oy, oz, dx, dy, dz = ox[live], oy[live], oz[live], dx[live], dy[live], dz[live]
+    if len(act):  # out of steps (should not happen): accept those essentially on the surface
+        dist = _sdf3(ox + t * dx, oy + t * dy, oz + t * dz)
         ok = dist < 1e-4
-        t_hit[act[ok]] = t[ok]
+        hits.append((act[ok], t[ok]))
+    if hits:
+        idx = np.concatenate([h[0] for h in hits])
+        th = np.concatenate([h[1] for h in hits])
+        oh, dh = o[idx], d[idx]
+        for _ in range(100):  # walk overshoots back to the surface (sdf < 0 -> step backwards)
+            dist = sdf(oh + th[:, None] * dh)
+            back = dist < -eps
+            if not back.any():
+                break
+            th[back] += dist[back]
+        t_hit[idx] = th
     return t_hit
 
 
@@ -420,18 +485,15 @@ def render_view(K: np.ndarray, w2c: np.ndarray, height: int, width: int, seed: i
             Kinv = np.linalg.inv(K)
             R = w2c[:3, :3]
             C = -R.T @ w2c[:3, 3]
-            acc = np.zeros((len(edge), 3))
-            for ox, oy in sub:
-                pix = np.stack([cols + ox, rows + oy, np.ones(len(edge))], 1)
-                dc = pix @ Kinv.T
-                dw = dc @ R
-                dw /= np.linalg.norm(dw, axis=1, keepdims=True)
-                ts = trace(np.broadcast_to(C, dw.shape), dw)
-                hs = np.isfinite(ts)
-                c = bg[edge].copy()
-                ps = C + ts[hs][:, None] * dw[hs]
-                c[hs] = shade(ps, sdf_normals(ps), seed)
-                acc += c
+            pix = np.concatenate([np.stack([cols + ox, rows + oy, np.ones(len(edge))], 1) for ox, oy in sub])
+            dw = pix @ Kinv.T @ R  # world directions, R^T K^-1 pix row-wise
+            dw /= np.linalg.norm(dw, axis=1, keepdims=True)
+            ts = trace(np.broadcast_to(C, dw.shape), dw)
+            hs = np.isfinite(ts)
+            c = np.tile(bg[edge], (len(sub), 1))
+            ps = C + ts[hs][:, None] * dw[hs]
+            c[hs] = shade(ps, sdf_normals(ps), seed)
+            acc = c.reshape(len(sub), len(edge), 3).sum(0)
             rgb[edge] = acc / len(sub)
     image = np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8).reshape(height, width, 3)
     normals = np.zeros((height * width, 3), np.float32)
@@ -442,8 +504,8 @@ def render_view(K: np.ndarray, w2c: np.ndarray, height: int, width: int, seed: i
 # --------------------------------------------------------------------------- cameras
 
 DISTANCE = 3.0
-FOCAL_FACTOR = 2.4  # fx = 2.4 W, as DTU
-ARCS = ((20.0, 70.0), (40.0, 60.0), (60.0, 45.0))  # (elevation, half azimuth span) in degrees
+FOCAL_FACTOR = 2.4  # fx = 2.4 W: a narrow, DTU-like field of view (23.5 deg)
+ARCS = ((20.0, 70.0), (40.0, 55.0), (60.0, 45.0))  # (elevation, half azimuth span) in degrees
 
 
 def _arc_counts(n_views: int) -> list[int]:
@@ -493,26 +555,31 @@ def camera_poses(n_views: int = 49) -> np.ndarray:
     return np.stack([_look_at(c) for c in camera_positions(n_views)])
 
 
-def points_visible(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, height: int, width: int, tol: float = 1e-4) -> np.ndarray:
-    """bool [P]: point (on the surface) is inside the image and unoccluded in at least one view.
+def points_visible(
+    points: np.ndarray, K: np.ndarray, w2c: np.ndarray, height: int, width: int, tol: float = 1e-3
+) -> np.ndarray:
+    """bool [P]: surface point is inside the image, front-facing and unoccluded in at least one
+    view (e.g. to keep the observed part of :func:`sample_surface` for completeness).
     K [N,3,3] or [3,3], w2c [N,4,4]."""
     p = np.asarray(points, np.float64)
     w2c = np.asarray(w2c, np.float64).reshape(-1, 4, 4)
     K = np.broadcast_to(np.asarray(K, np.float64), (len(w2c), 3, 3))
+    normals = sdf_normals(p)
     seen = np.zeros(len(p), bool)
     for Ki, T in zip(K, w2c):
+        C = -T[:3, :3].T @ T[:3, 3]
         xc = p @ T[:3, :3].T + T[:3, 3]
         uv = xc @ Ki.T
         u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
         inside = (xc[:, 2] > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height) & ~seen
+        inside &= np.einsum("ij,ij->i", normals, C - p) > 0  # back faces are hidden (closed surface)
         idx = np.nonzero(inside)[0]
         if len(idx) == 0:
             continue
-        C = -T[:3, :3].T @ T[:3, 3]
         vec = p[idx] - C
         dist = np.linalg.norm(vec, axis=1)
-        t = trace(np.broadcast_to(C, vec.shape), vec / dist[:, None])
-        seen[idx[t >= dist - tol]] = True
+        blocked = np.isfinite(trace(np.broadcast_to(C, vec.shape), vec / dist[:, None], t_max=dist - tol))
+        seen[idx[~blocked]] = True
     return seen
 
 

@@ -115,7 +115,7 @@ def plot_schedule(sched: mavos.Schedule, phi: np.ndarray, W: np.ndarray, path, t
     picks = sched.picks
     x = np.arange(len(picks))
     bx.bar(x, sched.S[picks], color=[_colour(int(sched.round[i])) for i in picks], edgecolor="k", linewidth=0.4)
-    bx.plot(x, sched.s_tilde[picks], "k.", ms=4, label="S~ (within its round)")
+    bx.plot(x, sched.s_tilde[picks], "o", color="crimson", ms=3.5, label="S~ (normalised within its round)")
     bx.set_xticks(x)
     bx.set_xticklabels([str(i) for i in picks], rotation=90, fontsize=6)
     bx.set_xlabel("view (in pick order)")
@@ -151,9 +151,11 @@ def run(ctx) -> None:
     anchors = sched.anchors
     connected = mavos.is_connected_subset(W, anchors)
     n_clusters = len(mavos.connected_components(W[np.ix_(anchors, anchors)])) if anchors else 0
+    bottleneck = mavos.bottleneck_weight(W, anchors) if len(anchors) > 1 else None
     rounds = [sched.round_views(r) for r in range(sched.n_rounds)]
-    ctx.log.info("%s/%s: %d anchors (%s), rounds %s", p.strategy, p.coverage, len(anchors),
-                 "one connected cluster" if connected else f"{n_clusters} clusters", [len(r) for r in rounds])
+    ctx.log.info("%s/%s: %d anchors (%s, weakest spanning link %s matches), rounds %s", p.strategy, p.coverage,
+                 len(anchors), "one connected cluster" if connected else f"{n_clusters} clusters", bottleneck,
+                 [len(r) for r in rounds])
 
     io.save_arrays(ctx.out / "schedule.zarr", {
         "round": sched.round, "order": sched.order, "S": sched.S, "L": sched.L, "C": sched.C,
@@ -178,6 +180,9 @@ def run(ctx) -> None:
         "n_anchors": len(anchors),
         "anchors_connected": bool(connected),
         "anchor_clusters": n_clusters,
+        "anchor_bottleneck_matches": bottleneck,
+        "anchors_connected_definition": "the subgraph of W (edges n_ij > 0) induced by the anchors is connected; "
+                                        "anchor_bottleneck_matches = weakest link of its maximum spanning tree",
         "excluded_views": excluded,
         "picks": sched.picks,
         "s_tilde_definition": "S at pick time, min-max normalised over all views optimised in that round "
@@ -188,6 +193,8 @@ def run(ctx) -> None:
                   title=f"{ctx.scene}: {p.strategy}-{p.coverage}"
                         + (f", alpha = {p.alpha}" if p.strategy == "mavos" else "")
                         + f", K = {p.anchor_percent:g}%, M = {p.successors_per_round}; anchors "
-                        + ("form one connected cluster" if connected else f"form {n_clusters} clusters"))
+                        + ("form one connected cluster" if connected else f"form {n_clusters} clusters")
+                        + (f" (weakest spanning link {bottleneck:g} matches)" if bottleneck else ""))
     ctx.metrics.update(n_anchors=len(anchors), anchors_connected=bool(connected), anchor_clusters=n_clusters,
+                       anchor_bottleneck_matches=bottleneck,
                        n_rounds=sched.n_rounds, round_sizes=[len(r) for r in rounds], n_excluded=len(excluded))

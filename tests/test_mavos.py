@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from manifoldneus.mavos import (
+    bottleneck_weight,
     connected_components,
     is_connected_subset,
     mavos_schedule,
@@ -107,6 +108,12 @@ def test_components_and_connectivity():
     assert is_connected_subset(W, [2, 3, 4])
     assert not is_connected_subset(W, [2, 4])
     assert not is_connected_subset(W, [0, 2])
+    V = path_graph(4, 10.0)
+    V[1, 2] = V[2, 1] = 3.0
+    V[0, 3] = V[3, 0] = 1.0
+    assert bottleneck_weight(V, [0, 1, 2, 3]) == 3.0  # the weak middle link of the max spanning tree
+    assert bottleneck_weight(V, [0, 3]) == 1.0
+    assert bottleneck_weight(W, [0, 2]) == 0.0
 
 
 # --------------------------------------------------------------------------- helpers

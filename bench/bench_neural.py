@@ -1,0 +1,281 @@
+"""Benchmark of the neural surface core on DTU scan24 with ground-truth poses.
+
+Trains on all views but every 8th (held out: 0, 8, 16, ...), within a wall-clock budget, and
+reports masked held-out PSNR (MSE over foreground pixels only), SSIM, throughput (rays/s), peak
+memory (max RSS) and wall time. Prints a table and writes JSON.
+
+    .venv/bin/python bench/bench_neural.py --field grid --budget 420 --out /tmp/bench_neural.json
+    .venv/bin/python bench/bench_neural.py --throughput-only      # rays/s of both fields
+
+The scan24 loader here is temporary: the pipeline's ingest artifact (docs/STAGES.md) replaces it.
+"""
+from __future__ import annotations
+
+import os
+
+# OpenMP busy-waiting collapses throughput when the 2 cores are shared with other processes.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import resource  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import asdict, replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from manifoldneus.cameras import decompose_projection  # noqa: E402
+from manifoldneus.field import FieldParams  # noqa: E402
+from manifoldneus.losses import LossParams  # noqa: E402
+from manifoldneus.metrics import psnr, ssim  # noqa: E402
+from manifoldneus.render import RenderParams  # noqa: E402
+from manifoldneus.train import TrainParams, Trainer, Views  # noqa: E402
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "dtu" / "scan24"
+
+
+def load_scan24(root: Path, crop_x: float = 200.0, size: int = 384) -> Views:
+    """MonoSDF-layout DTU scan (see the data README): intrinsics from world_mat after the centre
+    crop / resize, poses in the frame normalised by scale_mat (object inside the unit sphere)."""
+    import cv2
+
+    root = Path(root)
+    if not (root / "cameras.npz").is_file():
+        raise FileNotFoundError(f"no scan at {root} (expected cameras.npz and NNNNNN_rgb.png); pass --data")
+    cams = np.load(root / "cameras.npz")
+    names = sorted(p.name[:6] for p in root.glob("*_rgb.png"))
+    imgs, masks, depth, normal, Ks, w2cs = [], [], [], [], [], []
+    for i, n in enumerate(names):
+        P = (cams[f"world_mat_{i}"] @ cams[f"scale_mat_{i}"])[:3, :4]
+        K, w2c = decompose_projection(P)
+        K[0, 2] -= crop_x
+        K[:2] *= size / 1200.0
+        Ks.append(K)
+        w2cs.append(w2c)
+        imgs.append(cv2.imread(str(root / f"{n}_rgb.png"))[..., ::-1])
+        mp = root / f"{n}_mask.png"
+        if mp.is_file():
+            masks.append(cv2.imread(str(mp))[..., 0] > 127)
+        dp = root / f"{n}_depth.npy"
+        if dp.is_file():
+            depth.append(np.load(dp).astype(np.float32))
+        npth = root / f"{n}_normal.npy"
+        if npth.is_file():
+            nn_ = np.load(npth).astype(np.float32).transpose(1, 2, 0) * 2.0 - 1.0
+            normal.append(nn_ / np.linalg.norm(nn_, axis=-1, keepdims=True).clip(1e-8))
+    full = len(names)
+    return Views(
+        images=np.stack(imgs),
+        K=np.stack(Ks),
+        w2c=np.stack(w2cs),
+        masks=np.stack(masks) if len(masks) == full else None,
+        mono_depth=np.stack(depth) if len(depth) == full else None,
+        mono_normal=np.stack(normal) if len(normal) == full else None,
+        names=names,
+    )
+
+
+def peak_rss_gib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+
+
+def evaluate(tr: Trainer, test_ids, save_dir: Path | None = None) -> dict:
+    imgs = tr.views.float_images()
+    ps, pm, ss, sm = [], [], [], []
+    t0 = time.time()
+    for i in test_ids:
+        out = tr.render_view(int(i))
+        gt = imgs[i]
+        m = tr.views.masks[i] if tr.views.masks is not None else None
+        pred = np.clip(out["rgb"], 0, 1)
+        ps.append(psnr(pred, gt))
+        ss.append(ssim(pred, gt))
+        if m is not None:
+            pm.append(psnr(pred, gt, m))
+            sm.append(ssim(pred, gt, m))
+        if save_dir is not None:
+            from manifoldneus.io import save_png
+
+            save_dir.mkdir(parents=True, exist_ok=True)
+            save_png(save_dir / f"view{i:02d}.png", np.concatenate([pred, gt], 1))
+    r = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "eval_s": time.time() - t0,
+         "psnr_per_view": [float(x) for x in ps]}
+    if pm:
+        r.update({"psnr_masked": float(np.mean(pm)), "ssim_masked": float(np.mean(sm)),
+                  "psnr_masked_per_view": [float(x) for x in pm]})
+    return r
+
+
+def build_params(args):
+    fp = FieldParams(kind=args.field)
+    if args.field == "mlp":
+        fp = replace(fp, mlp_width=args.mlp_width, mlp_depth=args.mlp_depth, color_width=args.mlp_width,
+                     mlp_skip=args.mlp_depth // 2 if args.mlp_depth >= 4 else -1)
+    else:
+        fp = replace(fp, grid_levels=args.levels, grid_max_res=args.max_res, grid_min_res=args.min_res,
+                     grid_channels=args.channels)
+    rp = RenderParams(n_uniform=args.n_uniform, n_importance=args.n_importance, sampler=args.sampler,
+                      cache_res=args.cache_res)
+    lp = LossParams(w_depth=args.w_depth, w_normal=args.w_normal, w_mask=args.w_mask, w_eikonal=args.w_eik)
+    tp = TrainParams(iters=args.iters, batch_rays=args.rays, image_size=args.size, warmup=args.warmup,
+                     time_budget_s=args.budget, threads=args.threads, log_every=50, c2f_iters=args.c2f,
+                     fg_ray_fraction=args.fg_frac, lr=args.lr, grid_lr=args.grid_lr, ckpt_every=250)
+    for k, v in (args.set or []):
+        for obj in (fp, rp, lp, tp):
+            if hasattr(obj, k):
+                setattr(obj, k, type(getattr(obj, k))(v))
+                break
+        else:
+            raise SystemExit(f"unknown parameter {k}")
+    return fp, rp, lp, tp
+
+
+def throughput(views: Views, args, kinds=("grid", "mlp"), n_iter: int = 10) -> dict:
+    out = {}
+    for kind in kinds:
+        a = argparse.Namespace(**vars(args))
+        a.field = kind
+        fp, rp, lp, tp = build_params(a)
+        tr = Trainer(views, fp, rp, lp, tp, train_views=[i for i in range(views.n) if i % 8])
+        tr.train_step()
+        tr.train_step()
+        t0 = time.time()
+        for _ in range(n_iter):
+            tr.train_step()
+        dt = (time.time() - t0) / n_iter
+        out[kind] = {"s_per_iter": dt, "rays_per_s": tp.batch_rays / dt,
+                     "samples_per_ray": rp.n_uniform + rp.n_importance}
+        print(f"throughput {kind}: {dt:.3f} s/iter, {tp.batch_rays / dt:.0f} rays/s")
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    ap.add_argument("--field", default="grid", choices=["grid", "mlp"])
+    ap.add_argument("--size", type=int, default=96, help="training / evaluation image size (longest side)")
+    ap.add_argument("--budget", type=float, default=420.0, help="training wall-clock budget in seconds")
+    ap.add_argument("--iters", type=int, default=2000, help="schedule length (lr decays over it)")
+    ap.add_argument("--warmup", type=int, default=100)
+    ap.add_argument("--rays", type=int, default=1024)
+    ap.add_argument("--lr", type=float, default=5e-4)
+    ap.add_argument("--grid-lr", type=float, default=1e-2)
+    ap.add_argument("--n-uniform", type=int, default=8)
+    ap.add_argument("--n-importance", type=int, default=24)
+    ap.add_argument("--sampler", default="cache", choices=["cache", "neus"])
+    ap.add_argument("--cache-res", type=int, default=64)
+    ap.add_argument("--levels", type=int, default=6)
+    ap.add_argument("--min-res", type=int, default=16)
+    ap.add_argument("--max-res", type=int, default=128)
+    ap.add_argument("--channels", type=int, default=4)
+    ap.add_argument("--mlp-width", type=int, default=128)
+    ap.add_argument("--mlp-depth", type=int, default=4)
+    ap.add_argument("--c2f", type=int, default=0)
+    ap.add_argument("--fg-frac", type=float, default=0.0)
+    ap.add_argument("--w-depth", type=float, default=0.1)
+    ap.add_argument("--w-normal", type=float, default=0.05)
+    ap.add_argument("--w-mask", type=float, default=0.1)
+    ap.add_argument("--w-eik", type=float, default=0.1)
+    ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--no-masks", action="store_true", help="drop the masks (unmasked training)")
+    ap.add_argument("--no-priors", action="store_true", help="drop the mono depth / normal priors")
+    ap.add_argument("--eval-at", type=float, nargs="*", default=[], help="also evaluate after these training seconds")
+    ap.add_argument("--throughput-only", action="store_true")
+    ap.add_argument("--set", nargs=2, action="append", metavar=("KEY", "VALUE"), help="any *Params field")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/manifoldneus_bench/bench_neural.json"))
+    ap.add_argument("--save-images", type=Path, default=None)
+    ap.add_argument("--mesh", type=Path, default=None, help="also extract a mesh (PLY + preview PNG) here")
+    args = ap.parse_args()
+
+    t_start = time.time()
+    views = load_scan24(args.data)
+    if args.no_masks:
+        views.masks = None
+    if args.no_priors:
+        views.mono_depth = views.mono_normal = None
+    test_ids = [i for i in range(views.n) if i % 8 == 0]
+    train_ids = [i for i in range(views.n) if i % 8]
+    load_s = time.time() - t_start
+    if args.throughput_only:
+        res = {"throughput": throughput(views, args), "load_s": load_s, "peak_rss_gib": peak_rss_gib(),
+               "threads": torch.get_num_threads(), "loadavg": os.getloadavg()}
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(res, indent=2))
+        return
+
+    fp, rp, lp, tp = build_params(args)
+    tr = Trainer(views, fp, rp, lp, tp, train_views=train_ids)
+    evals = []
+    pending = sorted(args.eval_at)
+    train_time = [0.0]
+    t_train0 = time.time()
+    eval_time = [0.0]
+
+    def cb(trainer, info):
+        el = time.time() - t_train0 - eval_time[0]
+        if pending and el >= pending[0]:
+            pending.pop(0)
+            t0 = time.time()
+            r = evaluate(trainer, test_ids)
+            trainer.field.train()
+            eval_time[0] += time.time() - t0
+            r.update(step=trainer.step, train_s=el, loadavg=os.getloadavg()[0])
+            evals.append(r)
+            print(f"  eval @ {el:.0f}s step {trainer.step}: masked PSNR {r.get('psnr_masked', float('nan')):.2f} "
+                  f"PSNR {r['psnr']:.2f}", flush=True)
+        if info["step"] % 200 == 0:
+            print(f"  step {info['step']} loss {info['loss']:.4f} " + " ".join(
+                f"{k[5:]}={v:.4f}" for k, v in info.items() if k.startswith("loss_")) +
+                f" s={info['inv_s']:.0f} t={el:.0f}s load={os.getloadavg()[0]:.1f}", flush=True)
+        return False
+
+    # the budget counts training only; intermediate evaluations are excluded from it
+    summary = {}
+    while True:
+        remaining = args.budget - (time.time() - t_train0 - eval_time[0])
+        if remaining <= 0 or tr.step >= tp.iters:
+            break
+        summary = tr.train(time_budget_s=remaining, callback=cb)
+    train_s = time.time() - t_train0 - eval_time[0]
+    final = evaluate(tr, test_ids, args.save_images)
+    wall = time.time() - t_start - eval_time[0]
+    res = {
+        "field": args.field, "size": f"{tr.W}x{tr.H}", "steps": tr.step, "train_s": train_s,
+        "s_per_iter": train_s / max(tr.step, 1), "rays_per_s": tr.step * tp.batch_rays / train_s,
+        "final": final, "intermediate": evals, "wall_s_excl_intermediate_evals": wall, "load_s": load_s,
+        "peak_rss_gib": peak_rss_gib(), "loss_status": tr.loss_status, "rollbacks": tr.rollbacks,
+        "background": tr.bg_kind, "threads": torch.get_num_threads(), "loadavg_end": os.getloadavg(),
+        "params": {"field": asdict(fp), "render": asdict(rp), "loss": asdict(lp), "train": asdict(tp)},
+        "aabb": tr.field.aabb.tolist() if hasattr(tr.field, "aabb") else None,
+        "history": tr.history,
+    }
+    if args.mesh is not None:
+        from manifoldneus.meshing import extract_mesh, save_ply, save_preview
+
+        t0 = time.time()
+        args.mesh.mkdir(parents=True, exist_ok=True)
+        mesh = extract_mesh(tr.sdf_fn(), resolution=192)
+        save_ply(mesh, args.mesh / "mesh.ply")
+        save_preview(mesh, args.mesh / "mesh.png")
+        res["mesh"] = {"faces": int(len(mesh.faces)), "seconds": time.time() - t0}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(res, indent=2))
+    print()
+    print("| field | size | steps | train s | s/iter | rays/s | held-out PSNR (masked) | PSNR | SSIM (masked) | peak GiB | wall s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print(f"| {args.field} | {res['size']} | {tr.step} | {train_s:.0f} | {res['s_per_iter']:.3f} | {res['rays_per_s']:.0f} | "
+          f"{final.get('psnr_masked', float('nan')):.2f} | {final['psnr']:.2f} | {final.get('ssim_masked', float('nan')):.3f} | "
+          f"{res['peak_rss_gib']:.2f} | {wall:.0f} |")
+    for e in evals:
+        print(f"  @ {e['train_s']:.0f}s (step {e['step']}): masked PSNR {e.get('psnr_masked', float('nan')):.2f}")
+    print(f"JSON: {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,166 @@
+"""Surface extraction: SDF on a grid inside the sphere -> marching cubes -> largest component(s),
+optional culling by the training views' (dilated) masks, PLY writing and a PNG preview.
+
+Outside the sphere the SDF is unconstrained, so the grid values are intersected with the sphere:
+f' = max(f, |x| - radius) (the mesh is closed by the sphere where the SDF leaks out).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def sdf_grid(sdf_fn, resolution: int = 256, radius: float = 1.0, chunk: int = 262144,
+             lo=None, hi=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Evaluate ``sdf_fn`` (numpy [P,3] -> [P]) on a resolution^3 grid spanning [lo, hi]
+    (default the sphere's cube). Returns (values [r,r,r] indexed x,y,z, lo, hi)."""
+    lo = np.full(3, -radius) if lo is None else np.asarray(lo, float)
+    hi = np.full(3, radius) if hi is None else np.asarray(hi, float)
+    axes = [np.linspace(lo[k], hi[k], resolution) for k in range(3)]
+    out = np.empty((resolution,) * 3, np.float32)
+    # evaluate slab by slab (x), to bound memory
+    yz = np.stack(np.meshgrid(axes[1], axes[2], indexing="ij"), -1).reshape(-1, 2)
+    slabs = max(1, chunk // len(yz))
+    for i in range(0, resolution, slabs):
+        xs = axes[0][i:i + slabs]
+        P = np.concatenate([np.repeat(xs, len(yz))[:, None], np.tile(yz, (len(xs), 1))], 1)
+        out[i:i + len(xs)] = np.asarray(sdf_fn(P), np.float32).reshape(len(xs), resolution, resolution)
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    out = np.maximum(out, np.linalg.norm(g, axis=-1) - radius).astype(np.float32)
+    return out, lo, hi
+
+
+def marching_cubes(values: np.ndarray, lo, hi, level: float = 0.0):
+    """skimage marching cubes of a grid over [lo, hi] -> trimesh.Trimesh. skimage winds the faces
+    so their normals point towards increasing values: outwards for an SDF (outside positive)."""
+    import trimesh
+    from skimage import measure
+
+    if not (values.min() < level < values.max()):
+        raise ValueError(f"the SDF does not cross {level} on the grid (min {values.min():.3g}, max {values.max():.3g})")
+    r = np.array(values.shape) - 1
+    spacing = (np.asarray(hi) - np.asarray(lo)) / r
+    verts, faces, _, _ = measure.marching_cubes(values, level=level, spacing=tuple(spacing))
+    verts = verts + np.asarray(lo)
+    return trimesh.Trimesh(verts, faces, process=False)
+
+
+def largest_components(mesh, keep: int = 1, min_faces: int = 0):
+    """Keep the ``keep`` connected components with the most faces."""
+    import trimesh
+
+    if len(mesh.faces) == 0:
+        return mesh
+    parts = mesh.split(only_watertight=False)
+    if len(parts) <= 1:
+        return mesh
+    parts = sorted(parts, key=lambda m: len(m.faces), reverse=True)
+    parts = [m for m in parts[:keep] if len(m.faces) >= min_faces] or parts[:1]
+    return trimesh.util.concatenate(parts)
+
+
+def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all"):
+    """Remove vertices outside the training views' dilated masks.
+
+    rule 'all' (DTU evaluation scripts of IDR / NeuS / MonoSDF): keep a vertex when, in every view,
+    it projects inside the dilated mask or outside the image (a visual hull).
+    rule 'any': keep a vertex that projects inside the dilated mask of at least one view.
+    K [N,3,3], w2c [N,4,4], masks [N,H,W] bool. Faces keep only when all their vertices stay."""
+    import cv2
+
+    V = np.asarray(mesh.vertices, np.float64)
+    N, H, W = masks.shape
+    ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilation + 1, 2 * dilation + 1)) if dilation > 0 else None
+    inside_all = np.ones(len(V), bool)
+    inside_any = np.zeros(len(V), bool)
+    for i in range(N):
+        m = masks[i].astype(np.uint8)
+        if ker is not None:
+            m = cv2.dilate(m, ker)
+        xc = V @ w2c[i][:3, :3].T + w2c[i][:3, 3]
+        z = xc[:, 2]
+        uvw = xc @ K[i].T
+        uv = uvw[:, :2] / np.clip(z, 1e-9, None)[:, None]
+        in_img = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        c = np.clip(uv[:, 0].astype(int), 0, W - 1)
+        r = np.clip(uv[:, 1].astype(int), 0, H - 1)
+        in_mask = in_img & (m[r, c] > 0)
+        inside_all &= in_mask | ~in_img
+        inside_any |= in_mask
+    keep_v = inside_all if rule == "all" else inside_any
+    keep_f = keep_v[mesh.faces].all(1)
+    out = mesh.copy()
+    out.update_faces(keep_f)
+    out.remove_unreferenced_vertices()
+    return out
+
+
+def extract_mesh(sdf_fn, resolution: int = 256, radius: float = 1.0, keep_components: int = 1,
+                 level: float = 0.0, lo=None, hi=None):
+    """SDF -> grid -> marching cubes -> largest component(s). Returns trimesh.Trimesh."""
+    vals, lo, hi = sdf_grid(sdf_fn, resolution, radius, lo=lo, hi=hi)
+    mesh = marching_cubes(vals, lo, hi, level)
+    if keep_components > 0:
+        mesh = largest_components(mesh, keep_components)
+    return mesh
+
+
+def save_ply(mesh, path) -> None:
+    """Binary PLY."""
+    Path(path).write_bytes(mesh.export(file_type="ply"))
+
+
+def _look_rotation(forward: np.ndarray, up=np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    z = forward / np.linalg.norm(forward)
+    if abs(np.dot(z, up)) > 0.99:
+        up = np.array([0.0, 1.0, 0.0])
+    x = np.cross(z, -up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+def render_preview(mesh, size: int = 320, directions=None, up=None) -> np.ndarray:
+    """Shaded orthographic views of a mesh side by side (a numpy z-buffer rasteriser of the
+    triangles' sample points). Returns uint8 [size, size * n_views, 3]."""
+    V = np.asarray(mesh.vertices, np.float64)
+    F_ = np.asarray(mesh.faces)
+    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, float)
+    if directions is None:
+        directions = [np.array([1.0, 1.0, -0.6]), np.array([-1.0, 0.3, -0.4]), np.array([0.0, -1.0, -1.0])]
+    centre = 0.5 * (V.min(0) + V.max(0))
+    ext = np.linalg.norm(V.max(0) - V.min(0)) / 2 + 1e-9
+    fn = np.asarray(mesh.face_normals)
+    # sample points on faces: barycentric grid (more where faces are big relative to pixels)
+    bary = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1 / 3, 1 / 3, 1 / 3], [0.5, 0.5, 0], [0, 0.5, 0.5], [0.5, 0, 0.5]])
+    tri = V[F_]  # [F,3,3]
+    pts = np.einsum("bk,fkd->fbd", bary, tri).reshape(-1, 3)
+    pn = np.repeat(fn, len(bary), 0)
+    panels = []
+    for dvec in directions:
+        Rm = _look_rotation(np.asarray(dvec, float), up)
+        pc = (pts - centre) @ Rm.T / ext  # in [-1,1]
+        u = ((pc[:, 0] * 0.95 + 1) * 0.5 * (size - 1)).round().astype(int)
+        v = ((pc[:, 1] * 0.95 + 1) * 0.5 * (size - 1)).round().astype(int)
+        z = pc[:, 2]
+        ok = (u >= 0) & (u < size) & (v >= 0) & (v < size)
+        u, v, z = u[ok], v[ok], z[ok]
+        ncam = pn[ok] @ Rm.T
+        shade = np.clip(-ncam[:, 2], 0, 1) * 0.75 + 0.2 * np.clip(-ncam[:, 1], 0, 1) + 0.05
+        pix = v * size + u
+        order = np.lexsort((z, pix))  # by pixel, then nearest first
+        pix_s = pix[order]
+        first = np.ones(len(pix_s), bool)
+        first[1:] = pix_s[1:] != pix_s[:-1]
+        img = np.full(size * size, 1.0)
+        img[pix_s[first]] = shade[order][first]
+        img = img.reshape(size, size)
+        panels.append(np.stack([img * 0.85, img * 0.9, img], -1))
+    return (np.concatenate(panels, 1).clip(0, 1) * 255).astype(np.uint8)
+
+
+def save_preview(mesh, path, size: int = 320, **kw) -> None:
+    from manifoldneus.io import save_png
+
+    save_png(Path(path), render_preview(mesh, size, **kw))

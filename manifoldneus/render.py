@@ -1,0 +1,368 @@
+"""NeuS volume rendering with SDF-guided sampling (vectorised over rays and samples).
+
+Opacity of the section between consecutive samples p_i, p_{i+1} (NeuS discrete form):
+    alpha_i = max((Phi_s(f_i) - Phi_s(f_{i+1})) / Phi_s(f_i), 0),  Phi_s = sigmoid(s x)
+with f the SDF at the samples and s the field's learned inverse standard deviation; the
+section's colour is the mean of its end points' colours and its depth their mid-point.
+
+Sample placement (``RenderParams.sampler``):
+* ``cache`` (default, cheap): an :class:`SDFCache` (SDF of the field on a coarse grid, refreshed
+  by the trainer every few iterations) is looked up at ``n_coarse`` points per ray (no network
+  call); NeuS weights of those cached values (with s capped at ``cache_max_s``, the grid's
+  resolution) give a PDF from which ``n_importance`` samples are drawn, plus ``n_uniform``
+  stratified samples over the whole ray (so surfaces the cache misses are still seen).
+* ``neus``: NeuS hierarchical up-sampling with network evaluations (``n_coarse`` uniform, then
+  ``up_steps`` rounds with s = 64 * 2^i adding ``n_importance / up_steps`` samples each).
+
+Normals: the field's colour network may need per-sample normals (``mlp``); then the rendered normal
+is sum_i w_i n_i. Otherwise the normal is the SDF gradient at the ray's expected surface point
+o + d * depth / opacity (one gradient per ray; finite differences or autograd).
+Eikonal: gradients at a random subset of the samples and at uniform points in the sphere.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from manifoldneus.config import param
+from manifoldneus.field import fourier_encode
+from manifoldneus.rays import camera_rays, pixel_grid, sphere_bounds
+
+
+@dataclass
+class RenderParams:
+    """Section `render`: sampling and compositing."""
+
+    sampler: str = param("cache", "Sample placement: 'cache' (SDF-cache importance sampling) or 'neus' (NeuS up-sampling)",
+                         choices=["cache", "neus"])
+    n_uniform: int = param(8, "Stratified samples over the whole ray (network-evaluated)", lo=0)
+    n_importance: int = param(24, "Importance samples near the surface (network-evaluated)", lo=0)
+    n_coarse: int = param(96, "cache: cached-SDF look-ups per ray; neus: coarse network samples per ray", lo=2)
+    up_steps: int = param(4, "neus: up-sampling rounds", lo=1)
+    cache_res: int = param(64, "cache: resolution of the SDF cache grid over the sphere's cube", lo=8, hi=512)
+    cache_max_s: float = param(48.0, "cache: cap on s when weighting cached SDF values (about the cache's resolution)", lo=1.0)
+    cache_every: int = param(50, "cache: refresh the SDF cache every this many iterations", lo=1)
+    radius: float = param(1.0, "Radius of the bounding sphere (the object lies inside it)", lo=0.1)
+    background: str = param("auto", "Background: 'black', 'white', 'constant' (learned), 'envmap' (learned, per direction) "
+                            "or 'auto' (black with masks, envmap without)",
+                            choices=["auto", "black", "white", "constant", "envmap"])
+    eikonal_samples: int = param(1024, "Eikonal points per batch taken from the ray samples", lo=0)
+    eikonal_uniform: int = param(256, "Eikonal points per batch drawn uniformly in the sphere", lo=0)
+    chunk: int = param(4096, "Rays per chunk when rendering whole images", lo=64)
+
+
+# ----------------------------------------------------------------------------- background
+
+
+class Background(nn.Module):
+    """Colour seen where the rays leave the sphere: fixed, learned constant, or a tiny
+    direction-only MLP (an environment map at infinity, NeRF++-lite)."""
+
+    def __init__(self, kind: str):
+        super().__init__()
+        self.kind = kind
+        if kind == "constant":
+            self.value = nn.Parameter(torch.zeros(3))
+        elif kind == "envmap":
+            self.bands = 4
+            self.net = nn.Sequential(nn.Linear(3 + 6 * self.bands, 32), nn.ReLU(), nn.Linear(32, 3))
+
+    def forward(self, dirs: torch.Tensor) -> torch.Tensor:
+        n = dirs.shape[0]
+        if self.kind == "black":
+            return dirs.new_zeros(n, 3)
+        if self.kind == "white":
+            return dirs.new_ones(n, 3)
+        if self.kind == "constant":
+            return torch.sigmoid(self.value).expand(n, 3)
+        return torch.sigmoid(self.net(fourier_encode(dirs, self.bands)))
+
+
+def resolve_background(kind: str, has_masks: bool) -> str:
+    if kind != "auto":
+        return kind
+    return "black" if has_masks else "envmap"
+
+
+# ----------------------------------------------------------------------------- SDF cache
+
+
+class SDFCache:
+    """SDF of a field sampled on a res^3 grid over [-radius, radius]^3 (no gradients)."""
+
+    def __init__(self, res: int = 64, radius: float = 1.0, device="cpu"):
+        self.res, self.radius = res, radius
+        self.grid: torch.Tensor | None = None  # [1,1,res,res,res] (D=z, H=y, W=x)
+        self.device = device
+        self.n_updates = 0
+
+    def points(self) -> torch.Tensor:
+        lin = torch.linspace(-self.radius, self.radius, self.res, device=self.device)
+        z, y, x = torch.meshgrid(lin, lin, lin, indexing="ij")
+        return torch.stack([x, y, z], -1).reshape(-1, 3)
+
+    @torch.no_grad()
+    def update(self, sdf_fn, chunk: int = 65536) -> None:
+        pts = self.points()
+        vals = torch.cat([sdf_fn(pts[i:i + chunk]) for i in range(0, pts.shape[0], chunk)])
+        self.grid = vals.float().reshape(1, 1, self.res, self.res, self.res)
+        self.n_updates += 1
+
+    @torch.no_grad()
+    def query(self, x: torch.Tensor) -> torch.Tensor:
+        """Trilinear look-up at points [...,3] -> [...]; points outside the cube read the border."""
+        shp = x.shape[:-1]
+        g = (x.reshape(1, -1, 1, 1, 3) / self.radius).float()
+        v = F.grid_sample(self.grid, g, mode="bilinear", padding_mode="border", align_corners=True)
+        return v.reshape(shp).to(x.dtype)
+
+    def state_dict(self) -> dict:
+        return {"res": self.res, "radius": self.radius, "grid": self.grid}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.res, self.radius, self.grid = d["res"], d["radius"], d["grid"]
+
+
+# ----------------------------------------------------------------------------- sampling helpers
+
+
+def neus_alpha(sdf: torch.Tensor, inv_s) -> torch.Tensor:
+    """Section opacities [R,S-1] from SDF values at consecutive samples [R,S]."""
+    cdf = torch.sigmoid(sdf * inv_s)
+    prev, nxt = cdf[:, :-1], cdf[:, 1:]
+    return ((prev - nxt + 1e-5) / (prev + 1e-5)).clamp(0.0, 1.0)
+
+
+def alpha_to_weights(alpha: torch.Tensor) -> torch.Tensor:
+    trans = torch.cumprod(torch.cat([alpha.new_ones(alpha.shape[0], 1), 1.0 - alpha + 1e-7], -1), -1)[:, :-1]
+    return alpha * trans
+
+
+def sample_pdf(bins: torch.Tensor, weights: torch.Tensor, n: int, det: bool) -> torch.Tensor:
+    """Inverse-CDF sampling of ``n`` values per row from piecewise-constant weights on bins
+    ([R,S+1] edges, [R,S] weights). Returns [R,n] (unsorted when not det)."""
+    w = weights + 1e-5
+    pdf = w / w.sum(-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, -1)], -1)
+    if det:
+        u = torch.linspace(0.5 / n, 1 - 0.5 / n, n, device=bins.device, dtype=bins.dtype).expand(cdf.shape[0], n)
+    else:
+        u = torch.rand(cdf.shape[0], n, device=bins.device, dtype=bins.dtype)
+    u = u.contiguous()
+    idx = torch.searchsorted(cdf.detach().contiguous(), u, right=True)
+    below = (idx - 1).clamp(min=0)
+    above = idx.clamp(max=cdf.shape[-1] - 1)
+    cdf_b, cdf_a = cdf.gather(1, below), cdf.gather(1, above)
+    bin_b, bin_a = bins.gather(1, below), bins.gather(1, above)
+    denom = torch.where(cdf_a - cdf_b < 1e-5, torch.ones_like(cdf_a), cdf_a - cdf_b)
+    return bin_b + (u - cdf_b) / denom * (bin_a - bin_b)
+
+
+def stratified(near: torch.Tensor, far: torch.Tensor, n: int, perturb: bool) -> torch.Tensor:
+    """[R] bounds -> [R,n] stratified t values (bin centres when not perturbed)."""
+    if n == 0:
+        return near.new_zeros(near.shape[0], 0)
+    edges = torch.linspace(0.0, 1.0, n + 1, device=near.device, dtype=near.dtype)
+    lo = edges[:-1][None]
+    u = torch.rand(near.shape[0], n, device=near.device, dtype=near.dtype) if perturb else torch.full_like(lo.expand(near.shape[0], n), 0.5)
+    frac = lo + u / n
+    return near[:, None] + (far - near)[:, None] * frac
+
+
+@torch.no_grad()
+def place_samples(field, o, d, near, far, p: RenderParams, cache: SDFCache | None, band_weights, perturb: bool):
+    """(t values [R, n_uniform + n_importance] sorted, estimated surface t [R] or None), chosen
+    without gradients. The estimate is the expected t of the sampling weights (normalised)."""
+    R = o.shape[0]
+    t_uni = stratified(near, far, p.n_uniform, perturb)
+    if p.n_importance == 0:
+        return t_uni.sort(-1).values, None
+    if p.sampler == "cache" and cache is not None and cache.grid is not None:
+        t_c = stratified(near, far, p.n_coarse, perturb)
+        pts = o[:, None] + t_c[..., None] * d[:, None]
+        f = cache.query(pts)
+        s = min(float(field.inv_s().detach()), p.cache_max_s)
+        w = alpha_to_weights(neus_alpha(f, s))  # [R, n_coarse-1] on sections between look-ups
+        t_imp = sample_pdf(t_c, w, p.n_importance, det=not perturb)
+        return torch.cat([t_uni, t_imp], -1).sort(-1).values, _expected_t(t_c, w)
+    # NeuS up-sampling with network evaluations
+    t = stratified(near, far, p.n_coarse, perturb)
+    pts = o[:, None] + t[..., None] * d[:, None]
+    bw = None if band_weights is None else band_weights.repeat_interleave(t.shape[1], 0)
+    f = field.sdf(pts.reshape(-1, 3), bw).reshape(R, -1)
+    per = max(p.n_importance // p.up_steps, 1)
+    for i in range(p.up_steps):
+        w = alpha_to_weights(neus_alpha(f, 64.0 * 2**i))
+        n_new = per if i < p.up_steps - 1 else p.n_importance - per * (p.up_steps - 1)
+        t_new = sample_pdf(t, w, n_new, det=not perturb)
+        pts = o[:, None] + t_new[..., None] * d[:, None]
+        bw = None if band_weights is None else band_weights.repeat_interleave(n_new, 0)
+        f_new = field.sdf(pts.reshape(-1, 3), bw).reshape(R, -1)
+        t, order = torch.cat([t, t_new], -1).sort(-1)
+        f = torch.cat([f, f_new], -1).gather(1, order)
+    t_surf = _expected_t(t, alpha_to_weights(neus_alpha(f, 64.0 * 2**p.up_steps)))
+    if p.n_uniform:
+        t = torch.cat([t, t_uni], -1).sort(-1).values
+    return t, t_surf
+
+
+def _expected_t(t, w):
+    """Expected t of section weights w [R,S-1] over samples t [R,S] (normalised by their sum)."""
+    tm = 0.5 * (t[:, :-1] + t[:, 1:])
+    ws = w.sum(-1)
+    return torch.where(ws > 1e-4, (w * tm).sum(-1) / ws.clamp_min(1e-4), tm.mean(-1))
+
+
+# ----------------------------------------------------------------------------- rendering
+
+
+def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, background: nn.Module | None = None,
+                band_weights: torch.Tensor | None = None, perturb: bool = False, train: bool = False,
+                want_normals: bool = True) -> dict:
+    """Render rays (origins o [R,3], unit directions d [R,3]).
+
+    band_weights: [R, L] per-ray gate of the field's bands/levels (or None = all on).
+    train: build the graph for losses (normals with create_graph, Eikonal gradients).
+    Returns dict: rgb [R,3], depth [R] (expected t, not normalised), opacity [R], normal [R,3]
+    (unit, world frame), hit [R], weights [R,S-1], t [R,S]; with train also eik_grad [M,3].
+
+    All field evaluations of a call (ray samples, normal points, Eikonal points) go through ONE
+    batched field call, so grid gradients are accumulated once per step.
+    """
+    R = o.shape[0]
+    near, far, hit = sphere_bounds(o, d, p.radius)
+    t, t_surf = place_samples(field, o, d, near, far, p, cache, band_weights, perturb)  # [R,S]
+    S = t.shape[1]
+    pts = o[:, None] + t[..., None] * d[:, None]  # [R,S,3]
+    flat = pts.reshape(-1, 3)
+    dirs = d[:, None].expand(R, S, 3).reshape(-1, 3)
+    bw = None if band_weights is None else band_weights.repeat_interleave(S, 0)
+    need_grad = train and torch.is_grad_enabled()
+    out = {"hit": hit, "t": t}
+    if field.color_uses_normal:
+        # one SDF pass: autograd gives the per-sample normals the colour network reads
+        with torch.enable_grad():
+            x_in = flat if flat.requires_grad else flat.detach().requires_grad_(True)
+            sdf, feat = field._sdf_feat(x_in, bw)
+            (grad,) = torch.autograd.grad(sdf.sum(), x_in, create_graph=need_grad)
+        normals_s = F.normalize(grad, dim=-1)
+        rgb = field._color(x_in, dirs, feat, normals_s)
+        sdf, rgb = sdf.reshape(R, S), rgb.reshape(R, S, 3)
+        w, out = _composite(field, sdf, rgb, t, hit, d, background, out)
+        if want_normals:
+            ns = normals_s.reshape(R, S, 3)
+            out["normal"] = F.normalize((w[..., None] * 0.5 * (ns[:, :-1] + ns[:, 1:])).sum(1), dim=-1)
+        if need_grad and (p.eikonal_samples or p.eikonal_uniform):
+            grads = []
+            if p.eikonal_samples:
+                idx = torch.randint(0, R * S, (min(p.eikonal_samples, R * S),), device=o.device)
+                grads.append(grad[idx])
+            if p.eikonal_uniform:
+                g, _ = field.gradient(_uniform_ball(p.eikonal_uniform, p.radius, o.device), None)
+                grads.append(g)
+            out["eik_grad"] = torch.cat(grads, 0)
+        return out
+
+    # ---- fields whose colour needs no normals: batch everything into one field call
+    parts, bws, finishers = [flat], [bw], []
+    L = getattr(field, "n_bands", 0)
+
+    def ones(n):
+        return None if band_weights is None else band_weights.new_ones(n, L)
+
+    if want_normals and t_surf is not None:
+        t_s = torch.minimum(torch.maximum(t_surf, near), far)
+        x_surf = o.detach() + t_s[:, None] * d.detach()
+        pts_n, k, fin_n = field.gradient_points(x_surf, create_graph=need_grad)
+        parts.append(pts_n)
+        bws.append(None if band_weights is None else band_weights.repeat(k, 1))
+        finishers.append(("normal", fin_n))
+    if need_grad and (p.eikonal_samples or p.eikonal_uniform):
+        xe, bwe = [], []
+        if p.eikonal_samples:
+            idx = torch.randint(0, R * S, (min(p.eikonal_samples, R * S),), device=o.device)
+            xe.append(flat[idx].detach())
+            bwe.append(None if bw is None else bw[idx])
+        if p.eikonal_uniform:
+            xe.append(_uniform_ball(p.eikonal_uniform, p.radius, o.device))
+            bwe.append(ones(p.eikonal_uniform))
+        xe = torch.cat(xe)
+        pts_e, k, fin_e = field.gradient_points(xe, create_graph=True)
+        parts.append(pts_e)
+        bws.append(None if band_weights is None else torch.cat(bwe).repeat(k, 1))
+        finishers.append(("eik_grad", fin_e))
+    sizes = [x.shape[0] for x in parts]
+    analytic = field.resolved_gradient_mode() == "analytic" and len(parts) > 1
+    with torch.set_grad_enabled(torch.is_grad_enabled() or analytic):
+        x_all = torch.cat(parts) if len(parts) > 1 else flat
+        bw_all = None if band_weights is None else torch.cat(bws)
+        sdf_all, feat_all = field._sdf_feat(x_all, bw_all)
+        n0 = sizes[0]
+        rgb = field._color(flat, dirs, feat_all[:n0], None)
+        sdf = sdf_all[:n0].reshape(R, S)
+        rgb = rgb.reshape(R, S, 3)
+        off = n0
+        for (name, fin), size in zip(finishers, sizes[1:]):
+            g, _ = fin(sdf_all[off:off + size])
+            out[name] = g if name == "eik_grad" else F.normalize(g, dim=-1)
+            off += size
+    w, out = _composite(field, sdf, rgb, t, hit, d, background, out)
+    if want_normals and "normal" not in out:
+        # no sampling-based surface estimate: gradient at the rendered depth (second call)
+        t_s = (out["depth"] / out["opacity"].clamp_min(1e-4)).detach()
+        t_s = torch.minimum(torch.maximum(t_s, near), far)
+        g, _ = field.gradient(o.detach() + t_s[:, None] * d.detach(), band_weights, create_graph=need_grad)
+        out["normal"] = F.normalize(g, dim=-1)
+    return out
+
+
+def _uniform_ball(n, radius, device):
+    u = F.normalize(torch.randn(n, 3, device=device), dim=-1)
+    return u * torch.rand(n, 1, device=device) ** (1 / 3) * radius
+
+
+def _composite(field, sdf, rgb, t, hit, d, background, out):
+    alpha = neus_alpha(sdf, field.inv_s())  # [R,S-1]
+    w = alpha_to_weights(alpha) * hit[:, None].to(alpha.dtype)
+    c_sec = 0.5 * (rgb[:, :-1] + rgb[:, 1:])
+    t_mid = 0.5 * (t[:, :-1] + t[:, 1:])
+    opacity = w.sum(-1)
+    color = (w[..., None] * c_sec).sum(1)
+    if background is not None:
+        color = color + (1.0 - opacity)[:, None] * background(d)
+    out.update(rgb=color, depth=(w * t_mid).sum(-1), opacity=opacity, weights=w)
+    return w, out
+
+
+def render_image(field, K, w2c, height: int, width: int, p: RenderParams, *, cache: SDFCache | None = None,
+                 background: nn.Module | None = None, band_weights: torch.Tensor | None = None,
+                 device="cpu") -> dict:
+    """Render a whole view (no gradients). K [3,3], w2c [3|4,4] (numpy or torch).
+    band_weights: [L] for the whole view, or None. Returns numpy arrays: rgb [H,W,3],
+    depth [H,W] (z-depth along the optical axis, NaN-free; 0 where opacity is 0),
+    opacity [H,W], normal [H,W,3] (world frame)."""
+    K = torch.as_tensor(np.asarray(K), dtype=torch.float32, device=device)
+    w2c = torch.as_tensor(np.asarray(w2c)[:3, :4], dtype=torch.float32, device=device)
+    cols, rows = pixel_grid(height, width, device=device)
+    outs = {"rgb": [], "depth": [], "opacity": [], "normal": []}
+    for i in range(0, cols.shape[0], p.chunk):
+        c, r = cols[i:i + p.chunk], rows[i:i + p.chunk]
+        o, d = camera_rays(c, r, K, w2c)
+        bw = None if band_weights is None else torch.as_tensor(band_weights, dtype=torch.float32,
+                                                                device=device).expand(c.shape[0], -1)
+        need = field.color_uses_normal  # analytic normals need autograd even at inference
+        with torch.set_grad_enabled(need):
+            out = render_rays(field, o, d, p, cache=cache, background=background, band_weights=bw,
+                              perturb=False, train=False, want_normals=True)
+        # expected t along the unit ray -> z-depth along the optical axis
+        zfac = (d @ w2c[:3, :3].T)[:, 2]
+        outs["rgb"].append(out["rgb"].detach())
+        outs["depth"].append((out["depth"] / out["opacity"].clamp_min(1e-4) * zfac * (out["opacity"] > 1e-4)).detach())
+        outs["opacity"].append(out["opacity"].detach())
+        outs["normal"].append(out["normal"].detach())
+    res = {k: torch.cat(v).reshape(height, width, -1).squeeze(-1).cpu().numpy() for k, v in outs.items()}
+    return res

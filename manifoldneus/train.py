@@ -1,0 +1,474 @@
+"""Trainer of the neural surface: random ray batches over training views, Adam with linear
+warm-up then cosine decay, optional learnable per-view se(3) pose corrections (AdamW),
+checkpoint save / resume, and NaN / divergence rollback to the last good state with a lowered
+learning rate.
+
+Input is plain arrays (:class:`Views`): images [N,H,W,3], K [N,3,3], w2c [N,4,4] and optional
+masks [N,H,W], mono_depth [N,H,W], mono_normal [N,H,W,3] (unit, OpenCV camera frame).
+
+Hooks for the pose-free method:
+* ``band_weight_fn(view_ids [R] long, step) -> [R, L]``: per-ray gate of the field's bands/levels
+  (the MaVOS-gated BARF schedule); without it a global BARF ramp over ``c2f_iters`` applies
+  (0 = all bands on from the start).
+* ``learn_poses``: poses are ``w2c = apply_correction(xi[view], w2c_init[view])`` with ``xi``
+  [N,6] learned by AdamW for ``pose_views`` (default: all training views).
+"""
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field as dc_field
+
+import numpy as np
+import torch
+
+from manifoldneus.cameras import apply_correction
+from manifoldneus.config import param
+from manifoldneus.field import FieldParams, make_field
+from manifoldneus.losses import LossParams, compute_losses
+from manifoldneus.rays import camera_rays, project
+from manifoldneus.render import Background, RenderParams, SDFCache, render_image, render_rays, resolve_background
+
+log = logging.getLogger("manifoldneus.train")
+
+
+@dataclass
+class TrainParams:
+    """Section `train`: optimisation of the neural surface."""
+
+    iters: int = param(3000, "Training iterations (fast profile; the paper trains far longer)", lo=1)
+    time_budget_s: float = param(0.0, "Stop after this many seconds of training (0 = no limit)", lo=0.0)
+    batch_rays: int = param(1024, "Rays per iteration", lo=1)
+    fg_ray_fraction: float = param(0.0, "With masks: fraction of rays drawn from foreground pixels (0 = uniform)", lo=0.0, hi=1.0)
+    image_size: int = param(96, "Train on images downscaled so the longest side is this (0 = native)", lo=0)
+    lr: float = param(5e-4, "Peak learning rate of the network weights (supplement: 5e-4)", lo=0.0)
+    grid_lr: float = param(1e-2, "Peak learning rate of grid features (grid field)", lo=0.0)
+    lr_min_ratio: float = param(0.05, "Final lr as a fraction of the peak (supplement: 2.5e-5 / 5e-4)", lo=0.0, hi=1.0)
+    warmup: int = param(100, "Linear lr warm-up iterations (supplement: 5k of the paper's run; scale with iters)", lo=0)
+    c2f_iters: int = param(0, "Global coarse-to-fine: BARF ramp of the bands over this many iterations (0 = off); "
+                           "ignored when a per-view band_weight_fn is given", lo=0)
+    auto_aabb: bool = param(True, "grid: fit the grid box to the masks' visual hull (or the views' common frustum)")
+    learn_poses: bool = param(False, "Learn per-view se(3) corrections of the initial poses")
+    pose_lr: float = param(8e-3, "Peak AdamW lr of the pose corrections (supplement: 8e-3 anchors, 5e-3 later)", lo=0.0)
+    pose_warmup: int = param(100, "Pose lr warm-up iterations (supplement: 2k; scale with iters)", lo=0)
+    pose_lr_min_ratio: float = param(0.1, "Final pose lr as a fraction of its peak", lo=0.0, hi=1.0)
+    pose_weight_decay: float = param(0.0, "AdamW weight decay of the pose corrections", lo=0.0)
+    ckpt_every: int = param(200, "Keep a rollback state (and write the checkpoint file, if any) every N iterations", lo=1)
+    rollback_lr_factor: float = param(0.5, "Multiply the lr by this after a NaN/divergence rollback", lo=0.0, hi=1.0)
+    max_rollbacks: int = param(5, "Give up after this many rollbacks", lo=0)
+    diverge_factor: float = param(20.0, "A loss above this times its running mean counts as divergence", lo=1.0)
+    log_every: int = param(100, "Log every N iterations", lo=1)
+    seed: int = param(0, "Random seed", lo=0)
+    threads: int = param(0, "torch CPU threads (0 = leave torch's default)", lo=0)
+    device: str = param("cpu", "torch device: 'cpu' or 'cuda'", choices=["cpu", "cuda"])
+
+
+@dataclass
+class Views:
+    """Plain-array input of the trainer (see module doc)."""
+
+    images: np.ndarray
+    K: np.ndarray
+    w2c: np.ndarray
+    masks: np.ndarray | None = None
+    mono_depth: np.ndarray | None = None
+    mono_normal: np.ndarray | None = None
+    names: list = dc_field(default_factory=list)
+
+    @property
+    def n(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def hw(self) -> tuple[int, int]:
+        return int(self.images.shape[1]), int(self.images.shape[2])
+
+    def resized(self, size: int) -> "Views":
+        """Downscale (area filter) so the longest side is ``size``; K follows (pixel-centre
+        convention: plain scaling). Normals are renormalised, masks re-thresholded at 0.5."""
+        import cv2
+
+        H, W = self.hw
+        if size <= 0 or max(H, W) <= size:
+            return self
+        s = size / max(H, W)
+        h, w = max(int(round(H * s)), 1), max(int(round(W * s)), 1)
+        sx, sy = w / W, h / H
+
+        def rs(a, interp=cv2.INTER_AREA):
+            return np.stack([cv2.resize(x, (w, h), interpolation=interp) for x in a])
+
+        imgs = self.images
+        imgs = rs(imgs.astype(np.float32) / (255.0 if imgs.dtype == np.uint8 else 1.0))
+        K = np.array(self.K, dtype=np.float64)
+        K[:, 0, :] *= sx
+        K[:, 1, :] *= sy
+        masks = None if self.masks is None else rs(self.masks.astype(np.float32)) > 0.5
+        depth = None if self.mono_depth is None else rs(self.mono_depth.astype(np.float32))
+        normal = None
+        if self.mono_normal is not None:
+            normal = rs(self.mono_normal.astype(np.float32))
+            normal /= np.linalg.norm(normal, axis=-1, keepdims=True).clip(1e-8)
+        return Views(imgs, K, np.array(self.w2c), masks, depth, normal, list(self.names))
+
+    def float_images(self) -> np.ndarray:
+        im = self.images
+        return im.astype(np.float32) / 255.0 if im.dtype == np.uint8 else im.astype(np.float32)
+
+
+def barf_weights(progress: torch.Tensor | float, n_bands: int) -> torch.Tensor:
+    """BARF band weights w_k(a) = (1 - cos(pi * clamp(a - k, 0, 1))) / 2, k < L.
+    progress: scalar or [R] in [0, L]; returns [L] or [R, L]."""
+    a = torch.as_tensor(progress, dtype=torch.float32)
+    k = torch.arange(n_bands, dtype=torch.float32)
+    x = (a[..., None] - k).clamp(0.0, 1.0)
+    return (1.0 - torch.cos(math.pi * x)) / 2.0
+
+
+def lr_factor(step: int, total: int, warmup: int, min_ratio: float) -> float:
+    """Linear warm-up 0 -> 1 over ``warmup`` steps, then cosine decay to ``min_ratio`` at ``total``."""
+    if warmup > 0 and step < warmup:
+        return (step + 1) / warmup
+    if total <= warmup:
+        return 1.0
+    prog = min(max((step - warmup) / (total - warmup), 0.0), 1.0)
+    return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * prog))
+
+
+def visual_hull_aabb(views: Views, res: int = 48, radius: float = 1.0, margin: float = 0.05):
+    """Box of the masks' visual hull inside the sphere (or, without masks, of the points inside the
+    sphere seen by at least half the views). Returns (lo [3], hi [3]) numpy."""
+    lin = np.linspace(-radius, radius, res)
+    P = np.stack(np.meshgrid(lin, lin, lin, indexing="ij"), -1).reshape(-1, 3)
+    P = P[np.linalg.norm(P, axis=1) <= radius]
+    Pt = torch.as_tensor(P, dtype=torch.float64)
+    H, W = views.hw
+    keep = np.ones(len(P), bool)
+    seen = np.zeros(len(P), int)
+    for i in range(views.n):
+        uv, z = project(Pt, torch.as_tensor(views.K[i]), torch.as_tensor(views.w2c[i]))
+        uv, z = uv.numpy(), z.numpy()
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        seen += inside
+        if views.masks is not None:
+            c = np.clip(uv[:, 0].astype(int), 0, W - 1)
+            r = np.clip(uv[:, 1].astype(int), 0, H - 1)
+            import cv2
+
+            m = cv2.dilate(views.masks[i].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+            keep &= ~inside | m[r, c]
+    keep &= seen >= (1 if views.masks is not None else max(views.n // 2, 1))
+    if keep.sum() < 8:
+        return np.full(3, -radius), np.full(3, radius)
+    cell = 2 * radius / (res - 1)
+    lo = P[keep].min(0) - 2 * cell
+    hi = P[keep].max(0) + 2 * cell
+    ext = hi - lo
+    lo, hi = lo - margin * ext, hi + margin * ext
+    return np.clip(lo, -radius, radius), np.clip(hi, -radius, radius)
+
+
+class Trainer:
+    """Owns the field, background, SDF cache, optimisers and (optionally) pose corrections.
+
+    Parameters: ``views`` (:class:`Views`, full resolution; resized to ``train_p.image_size``),
+    ``train_views`` (indices used for training; default all), ``pose_views`` (indices whose poses
+    are learned when ``train_p.learn_poses``; default ``train_views``), ``band_weight_fn`` (see module
+    doc), ``progress`` (callable(step, info dict) called every ``log_every`` iterations).
+    """
+
+    def __init__(self, views: Views, field_p: FieldParams | None = None, render_p: RenderParams | None = None,
+                 loss_p: LossParams | None = None, train_p: TrainParams | None = None, *, train_views=None,
+                 pose_views=None, band_weight_fn=None, progress=None, checkpoint_path=None, device: str | None = None):
+        self.fp = field_p or FieldParams()
+        self.rp = render_p or RenderParams()
+        self.lp = loss_p or LossParams()
+        self.tp = train_p or TrainParams()
+        self.device = torch.device(device or self.tp.device)
+        if self.tp.threads > 0:
+            torch.set_num_threads(self.tp.threads)
+        torch.manual_seed(self.tp.seed)
+        self.rng = torch.Generator(device="cpu").manual_seed(self.tp.seed)
+        self.views = views.resized(self.tp.image_size)
+        self.train_views = np.arange(self.views.n) if train_views is None else np.asarray(train_views, int)
+        self.band_weight_fn = band_weight_fn
+        self.progress = progress
+        self.checkpoint_path = checkpoint_path
+        dev = self.device
+        v = self.views
+        H, W = v.hw
+        self.H, self.W = H, W
+        self.images = torch.as_tensor(v.float_images().reshape(v.n, H * W, 3), device=dev)
+        self.K = torch.as_tensor(v.K, dtype=torch.float32, device=dev)
+        self.w2c_init = torch.as_tensor(np.asarray(v.w2c)[:, :3, :4], dtype=torch.float32, device=dev)
+        self.masks = None if v.masks is None else torch.as_tensor(v.masks.reshape(v.n, H * W), device=dev)
+        self.mono_depth = None if v.mono_depth is None else torch.as_tensor(v.mono_depth.reshape(v.n, H * W), device=dev)
+        self.mono_normal = None if v.mono_normal is None else torch.as_tensor(
+            v.mono_normal.reshape(v.n, H * W, 3), device=dev)
+        self.field = make_field(self.fp).to(dev)
+        if self.fp.kind == "grid" and self.tp.auto_aabb:
+            lo, hi = visual_hull_aabb(self.views, radius=self.rp.radius)
+            self.field.set_aabb(lo, hi)
+        self.bg_kind = resolve_background(self.rp.background, self.masks is not None)
+        self.background = Background(self.bg_kind).to(dev)
+        self.cache = SDFCache(self.rp.cache_res, self.rp.radius, device=dev) if self.rp.sampler == "cache" else None
+        # pose corrections
+        self.xi = torch.nn.Parameter(torch.zeros(v.n, 6, device=dev))
+        pv = self.train_views if pose_views is None else np.asarray(pose_views, int)
+        self.pose_mask = torch.zeros(v.n, 1, device=dev)
+        if self.tp.learn_poses:
+            self.pose_mask[torch.as_tensor(pv, dtype=torch.long)] = 1.0
+        self._build_optimizers()
+        self.step = 0
+        self.lr_scale = 1.0
+        self.rollbacks = 0
+        self.events: list[dict] = []
+        self.loss_status: dict = {}
+        self._good_state = None
+        self._loss_ema = None
+        self.history: list[dict] = []
+        if self.masks is not None and self.tp.fg_ray_fraction > 0:
+            tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
+            fg = self.masks[tv].reshape(-1).nonzero()[:, 0]
+            self._fg_flat = fg  # indices into [len(train_views) * H * W]
+        else:
+            self._fg_flat = None
+
+    # ------------------------------------------------------------------ setup
+    def _build_optimizers(self):
+        grid_params = list(self.field.grid_parameters()) if hasattr(self.field, "grid_parameters") else []
+        gid = {id(p) for p in grid_params}
+        net_params = [p for p in self.field.parameters() if id(p) not in gid] + list(self.background.parameters())
+        groups = [{"params": net_params, "lr": self.tp.lr, "base_lr": self.tp.lr}]
+        if grid_params:
+            groups.append({"params": grid_params, "lr": self.tp.grid_lr, "base_lr": self.tp.grid_lr,
+                           "eps": 1e-15})
+        fused = self.device.type in ("cpu", "cuda")
+        self.opt = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15 if grid_params else 1e-8,
+                                    fused=fused)
+        self.pose_opt = None
+        if self.tp.learn_poses:
+            self.pose_opt = torch.optim.AdamW([{"params": [self.xi], "lr": self.tp.pose_lr, "base_lr": self.tp.pose_lr}],
+                                              weight_decay=self.tp.pose_weight_decay)
+
+    # ------------------------------------------------------------------ poses
+    def poses(self) -> torch.Tensor:
+        """Current world-to-camera poses [N,3,4] (corrected when poses are learned)."""
+        if not self.tp.learn_poses:
+            return self.w2c_init
+        return apply_correction(self.xi * self.pose_mask, self.w2c_init)
+
+    def poses_numpy(self) -> np.ndarray:
+        with torch.no_grad():
+            P = self.poses().cpu().double().numpy()
+        out = np.tile(np.eye(4), (P.shape[0], 1, 1))
+        out[:, :3, :4] = P
+        return out
+
+    # ------------------------------------------------------------------ batches
+    def sample_batch(self, n: int) -> dict:
+        dev = self.device
+        HW = self.H * self.W
+        nv = len(self.train_views)
+        tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
+        n_fg = int(round(n * self.tp.fg_ray_fraction)) if self._fg_flat is not None else 0
+        flat = torch.randint(0, nv * HW, (n - n_fg,), generator=self.rng).to(dev)
+        if n_fg:
+            pick = torch.randint(0, self._fg_flat.shape[0], (n_fg,), generator=self.rng).to(dev)
+            flat = torch.cat([flat, self._fg_flat[pick]])
+        view = tv[flat // HW]
+        pix = flat % HW
+        rows, cols = pix // self.W, pix % self.W
+        w2c_all = self.poses()
+        w2c = w2c_all[view]
+        o, d = camera_rays(cols, rows, self.K[view], w2c)
+        b = {"view": view, "pix": pix, "o": o, "d": d, "rgb": self.images[view, pix], "R_w2c": w2c[:, :3, :3]}
+        b["mask"] = None if self.masks is None else self.masks[view, pix]
+        b["mono_depth"] = None if self.mono_depth is None else self.mono_depth[view, pix]
+        b["mono_normal"] = None if self.mono_normal is None else self.mono_normal[view, pix]
+        return b
+
+    def band_weights(self, view: torch.Tensor, step: int):
+        if self.band_weight_fn is not None:
+            return self.band_weight_fn(view, step)
+        if self.tp.c2f_iters > 0:
+            L = self.field.n_bands
+            a = min(step / self.tp.c2f_iters, 1.0) * L
+            if a >= L:
+                return None
+            return barf_weights(a, L).to(self.device).expand(view.shape[0], L)
+        return None
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        return {
+            "step": self.step,
+            "field": self.field.state_dict(),
+            "background": self.background.state_dict(),
+            "opt": self.opt.state_dict(),
+            "xi": self.xi.detach().clone(),
+            "pose_opt": None if self.pose_opt is None else self.pose_opt.state_dict(),
+            "lr_scale": self.lr_scale,
+            "rollbacks": self.rollbacks,
+            "cache": None if self.cache is None else self.cache.state_dict(),
+            "params": {"field": asdict(self.fp), "render": asdict(self.rp), "loss": asdict(self.lp),
+                       "train": asdict(self.tp)},
+            "bg_kind": self.bg_kind,
+        }
+
+    def load_state_dict(self, s: dict) -> None:
+        self.step = int(s["step"])
+        self.field.load_state_dict(s["field"])
+        self.background.load_state_dict(s["background"])
+        self.opt.load_state_dict(s["opt"])
+        with torch.no_grad():
+            self.xi.copy_(s["xi"])
+        if self.pose_opt is not None and s.get("pose_opt") is not None:
+            self.pose_opt.load_state_dict(s["pose_opt"])
+        self.lr_scale = float(s["lr_scale"])
+        self.rollbacks = int(s.get("rollbacks", 0))
+        if self.cache is not None and s.get("cache") is not None:
+            self.cache.load_state_dict(s["cache"])
+
+    def save(self, path) -> None:
+        """Write a checkpoint (torch.save) that :meth:`load` resumes from."""
+        torch.save(self.state_dict(), str(path))
+
+    def load(self, path) -> None:
+        self.load_state_dict(torch.load(str(path), map_location=self.device, weights_only=False))
+
+    def _snapshot(self) -> None:
+        self._good_state = copy.deepcopy(self.state_dict())
+        if self.checkpoint_path is not None:
+            self.save(self.checkpoint_path)
+
+    def _rollback(self, reason: str) -> None:
+        if self._good_state is None:
+            raise FloatingPointError(f"training diverged at step {self.step} ({reason}) before any good state")
+        if self.rollbacks >= self.tp.max_rollbacks:
+            raise FloatingPointError(f"training diverged at step {self.step} ({reason}); "
+                                     f"gave up after {self.rollbacks} rollbacks")
+        bad_step = self.step
+        rollbacks = self.rollbacks + 1
+        self.load_state_dict(copy.deepcopy(self._good_state))
+        self.rollbacks = rollbacks
+        self.lr_scale *= self.tp.rollback_lr_factor
+        self._good_state["lr_scale"] = self.lr_scale
+        self._good_state["rollbacks"] = self.rollbacks
+        self._loss_ema = None
+        ev = {"event": "rollback", "at_step": bad_step, "to_step": self.step, "reason": reason,
+              "lr_scale": self.lr_scale}
+        self.events.append(ev)
+        log.warning("step %d: %s -> rolled back to step %d, lr scale now %.3g", bad_step, reason, self.step,
+                    self.lr_scale)
+
+    # ------------------------------------------------------------------ training
+    def set_lr(self) -> None:
+        f = lr_factor(self.step, self.tp.iters, self.tp.warmup, self.tp.lr_min_ratio) * self.lr_scale
+        for g in self.opt.param_groups:
+            g["lr"] = g["base_lr"] * f
+        if self.pose_opt is not None:
+            fp = lr_factor(self.step, self.tp.iters, self.tp.pose_warmup, self.tp.pose_lr_min_ratio) * self.lr_scale
+            for g in self.pose_opt.param_groups:
+                g["lr"] = g["base_lr"] * fp
+
+    def update_cache(self) -> None:
+        if self.cache is not None:
+            was = self.field.training
+            self.field.eval()
+            self.cache.update(lambda x: self.field.sdf(x))
+            self.field.train(was)
+
+    def train_step(self, inject_nan: bool = False) -> dict:
+        """One iteration. Returns {'loss', 'terms', 'status'} (or a rollback record)."""
+        if self.cache is not None and (self.cache.grid is None or self.step % self.rp.cache_every == 0):
+            self.update_cache()
+        if self._good_state is None:
+            self._snapshot()
+        self.set_lr()
+        b = self.sample_batch(self.tp.batch_rays)
+        bw = self.band_weights(b["view"], self.step)
+        out = render_rays(self.field, b["o"], b["d"], self.rp, cache=self.cache, background=self.background,
+                          band_weights=bw, perturb=True, train=True, want_normals=True)
+        total, terms, status = compute_losses(out, b, self.lp)
+        if inject_nan:
+            total = total * float("nan")
+        lv = float(total.detach())
+        self.loss_status = status
+        if not math.isfinite(lv):
+            self._rollback("non-finite loss")
+            return {"rollback": True}
+        if self._loss_ema is not None and self.step > self.tp.warmup and lv > self.tp.diverge_factor * self._loss_ema:
+            self._rollback(f"loss {lv:.4g} > {self.tp.diverge_factor} x running mean {self._loss_ema:.4g}")
+            return {"rollback": True}
+        self._loss_ema = lv if self._loss_ema is None else 0.98 * self._loss_ema + 0.02 * lv
+        self.opt.zero_grad(set_to_none=True)
+        if self.pose_opt is not None:
+            self.pose_opt.zero_grad(set_to_none=True)
+        total.backward()
+        bad = [n for n, p in self.field.named_parameters() if p.grad is not None and not torch.isfinite(p.grad).all()]
+        if bad:
+            self._rollback(f"non-finite gradient in {bad[0]}")
+            return {"rollback": True}
+        self.opt.step()
+        if self.pose_opt is not None:
+            self.pose_opt.step()
+        self.step += 1
+        if self.step % self.tp.ckpt_every == 0:
+            self._snapshot()
+        return {"loss": lv, "terms": terms, "status": status}
+
+    def train(self, iters: int | None = None, time_budget_s: float | None = None, callback=None) -> dict:
+        """Train until ``iters`` (default ``train_p.iters``) total iterations or the time budget.
+        ``callback(trainer, info)`` runs every ``log_every`` iterations (and may return True to stop).
+        Returns a summary dict."""
+        iters = self.tp.iters if iters is None else iters
+        budget = self.tp.time_budget_s if time_budget_s is None else time_budget_s
+        t0 = time.time()
+        last = {}
+        self.field.train()
+        while self.step < iters:
+            r = self.train_step()
+            if r.get("rollback"):
+                continue
+            last = r
+            if self.step % self.tp.log_every == 0 or self.step == iters:
+                info = {"step": self.step, "loss": r["loss"], **{f"loss_{k}": v for k, v in r["terms"].items()},
+                        "inv_s": float(self.field.inv_s().detach()), "lr": self.opt.param_groups[0]["lr"],
+                        "elapsed_s": time.time() - t0}
+                self.history.append(info)
+                log.info("step %d loss %.4f %s s=%.1f (%.0f s)", self.step, r["loss"],
+                         " ".join(f"{k}={v:.4f}" for k, v in r["terms"].items()), info["inv_s"], info["elapsed_s"])
+                if self.progress is not None:
+                    self.progress(self.step, info)
+                if callback is not None and callback(self, info):
+                    break
+            if budget and time.time() - t0 > budget:
+                log.info("time budget %.0f s reached at step %d", budget, self.step)
+                break
+        self.field.eval()
+        return {"steps": self.step, "seconds": time.time() - t0, "final_loss": last.get("loss"),
+                "loss_status": self.loss_status, "rollbacks": self.rollbacks, "events": list(self.events),
+                "background": self.bg_kind}
+
+    # ------------------------------------------------------------------ inference
+    def render_view(self, i: int, K=None, w2c=None, size: tuple[int, int] | None = None) -> dict:
+        """Render view ``i`` at the training resolution with its current pose (or given K / w2c)."""
+        H, W = size or (self.H, self.W)
+        K = self.views.K[i] if K is None else K
+        w2c = self.poses_numpy()[i] if w2c is None else w2c
+        self.field.eval()
+        return render_image(self.field, K, w2c, H, W, self.rp, cache=self.cache, background=self.background,
+                            device=self.device)
+
+    def sdf_fn(self):
+        """Callable numpy [P,3] -> numpy [P] SDF (no gradients), e.g. for meshing."""
+
+        def f(x):
+            with torch.no_grad():
+                t = torch.as_tensor(np.asarray(x), dtype=torch.float32, device=self.device)
+                return self.field.sdf(t).cpu().numpy()
+
+        return f

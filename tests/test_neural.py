@@ -1,0 +1,222 @@
+"""Fast CPU tests of the neural surface core (rays, rendering, meshing, metrics, losses, trainer)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from manifoldneus.cameras import look_at_w2c
+from manifoldneus.field import FieldBase, FieldParams, make_field
+from manifoldneus.losses import LossParams, compute_losses
+from manifoldneus.meshing import cull_by_masks, extract_mesh, render_preview
+from manifoldneus.metrics import chamfer, psnr, ssim
+from manifoldneus.rays import camera_rays, pixel_grid, sphere_bounds
+from manifoldneus.render import Background, RenderParams, SDFCache, render_image, render_rays
+from manifoldneus.train import TrainParams, Trainer, Views
+
+torch.set_num_threads(1)
+
+
+class SphereField(FieldBase):
+    """Analytic sphere SDF with a position-dependent colour (a test double of the field interface)."""
+
+    color_uses_normal = False
+
+    def __init__(self, radius=0.5, variance=0.75):
+        super().__init__(FieldParams(init_variance=variance, gradient_mode="analytic"))
+        self.radius = radius
+        self.n_bands = 1
+
+    def _sdf_feat(self, x, band_weights=None):
+        return x.norm(dim=-1) - self.radius, x
+
+    def _color(self, x, dirs, feat, normals):
+        return 0.5 + 0.5 * torch.tanh(2.0 * feat)
+
+
+def ring_cameras(n, dist=3.0, f=60.0, size=48, elev=0.4):
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    w2c = []
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        eye = dist * np.array([math.cos(a) * math.cos(elev), math.sin(a) * math.cos(elev), math.sin(elev)])
+        w2c.append(look_at_w2c(eye, np.zeros(3), np.array([0, 0, 1.0])))
+    return np.repeat(K[None], n, 0), np.stack(w2c)
+
+
+def analytic_hit(K, w2c, size, radius):
+    cols, rows = pixel_grid(size, size)
+    o, d = camera_rays(cols, rows, torch.tensor(K, dtype=torch.float64), torch.tensor(w2c, dtype=torch.float64))
+    near, far, hit = sphere_bounds(o, d, radius)
+    return hit.reshape(size, size).numpy(), near.reshape(size, size).numpy(), d
+
+
+def test_rays_through_principal_point_and_bounds():
+    K, W = ring_cameras(1)
+    o, d = camera_rays(torch.tensor([24]), torch.tensor([24]), torch.tensor(K[0]), torch.tensor(W[0]))
+    # pixel (24, 24) has its centre at 24.5: slightly off the principal point 24.0
+    assert torch.allclose(o[0], torch.tensor(-W[0][:3, :3].T @ W[0][:3, 3]), atol=1e-9)
+    near, far, hit = sphere_bounds(o, d, 1.0)
+    assert hit.item() and abs(near.item() - 2.0) < 1e-3 and abs(far.item() - 4.0) < 1e-3
+    # the ray from a pose requiring grad carries gradients to it
+    w = torch.tensor(W[0], requires_grad=True)
+    o2, d2 = camera_rays(torch.tensor([3]), torch.tensor([40]), torch.tensor(K[0]), w)
+    (o2.sum() + d2.sum()).backward()
+    assert w.grad is not None and torch.isfinite(w.grad).all()
+
+
+@pytest.mark.parametrize("sampler", ["cache", "neus"])
+def test_sphere_renders_depth_and_silhouette(sampler):
+    size, r = 48, 0.5
+    K, W = ring_cameras(1, size=size)
+    field = SphereField(r)
+    p = RenderParams(sampler=sampler, n_uniform=8, n_importance=32, n_coarse=64, cache_res=48)
+    cache = SDFCache(p.cache_res, 1.0)
+    cache.update(lambda x: field.sdf(x))
+    out = render_image(field, K[0], W[0], size, size, p, cache=cache, background=Background("black"))
+    hit, near, d = analytic_hit(K[0], W[0], size, r)
+    sil = out["opacity"] > 0.5
+    assert (sil != hit).sum() <= 0.03 * hit.sum()  # boundary pixels only
+    # z-depth of the first intersection where the ray is well inside the silhouette
+    z_true = (near.reshape(-1) * (d.numpy() @ W[0][:3, :3].T)[:, 2]).reshape(size, size)
+    core = hit & (out["opacity"] > 0.99)
+    assert core.sum() > 0.5 * hit.sum()
+    assert np.abs(out["depth"][core] - z_true[core]).mean() < 0.01
+    # normals point outwards (towards the camera: negative z in the camera frame)
+    n_cam = out["normal"][core] @ W[0][:3, :3].T
+    assert (n_cam[:, 2] < 0).mean() > 0.99
+
+
+def test_marching_cubes_sphere_radius():
+    r = 0.6
+    mesh = extract_mesh(lambda x: np.linalg.norm(x, axis=1) - r, resolution=64)
+    rad = np.linalg.norm(mesh.vertices, axis=1)
+    assert abs(rad.mean() - r) < 3e-3 and rad.std() < 5e-3
+    # outward normals
+    assert (np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles_center) > 0).mean() > 0.99
+    img = render_preview(mesh, size=64)
+    assert img.shape == (64, 192, 3) and img.min() < 200
+    # mask culling: a mask of the left half only removes the right half (rule 'any', one view)
+    K, W = ring_cameras(1, size=48)
+    masks = np.zeros((1, 48, 48), bool)
+    masks[0, :, :24] = True
+    culled = cull_by_masks(mesh, K, W, masks, dilation=0, rule="any")
+    assert 0.3 * len(mesh.faces) < len(culled.faces) < 0.7 * len(mesh.faces)
+
+
+def test_chamfer_known_sets():
+    g = np.stack(np.meshgrid(np.linspace(0, 1, 30), np.linspace(0, 1, 30), indexing="ij"), -1).reshape(-1, 2)
+    ref = np.c_[g, np.zeros(len(g))]
+    pred = ref + np.array([0, 0, 0.1])
+    c = chamfer(pred, ref)
+    assert abs(c["accuracy"] - 0.1) < 1e-9 and abs(c["completeness"] - 0.1) < 1e-9 and abs(c["chamfer"] - 0.1) < 1e-9
+    # an outlier hurts accuracy only
+    c2 = chamfer(np.r_[ref, [[5.0, 0, 0]]], ref)
+    assert c2["completeness"] == 0 and c2["accuracy"] > 0
+    assert chamfer(np.r_[ref, [[5.0, 0, 0]]], ref, max_dist=0.5)["accuracy"] <= 0.5 / len(ref) + 1e-12
+
+
+def test_image_metrics_masked():
+    rng = np.random.default_rng(0)
+    gt = rng.random((32, 32, 3))
+    pred = gt.copy()
+    mask = np.zeros((32, 32), bool)
+    mask[8:24, 8:24] = True
+    pred[~mask] = 0  # errors only in the background
+    assert psnr(pred, gt, mask) > 100 and psnr(pred, gt) < 20
+    assert ssim(gt, gt) > 0.999 and ssim(pred, gt, mask) > ssim(pred, gt)
+
+
+def test_loss_switches():
+    R = 64
+    out = {"rgb": torch.rand(R, 3), "opacity": torch.rand(R) * 0.5 + 0.5, "depth": torch.rand(R) + 2,
+           "normal": torch.nn.functional.normalize(torch.randn(R, 3), dim=-1), "eik_grad": torch.randn(32, 3)}
+    base = {"rgb": torch.rand(R, 3), "view": torch.zeros(R, dtype=torch.long), "R_w2c": torch.eye(3).expand(R, 3, 3)}
+    total, terms, status = compute_losses(out, dict(base), LossParams())
+    assert set(terms) == {"rgb", "eikonal"}
+    assert status["mask"].startswith("off") and status["depth"].startswith("off") and status["normal"].startswith("off")
+    full = dict(base, mask=torch.ones(R, dtype=torch.bool), mono_depth=out["depth"] / out["opacity"] * 0.5 + 0.1,
+                mono_normal=out["normal"])
+    total2, terms2, status2 = compute_losses(out, full, LossParams())
+    assert all(status2[k] == "on" for k in ("rgb", "eikonal", "mask", "depth", "normal"))
+    # an exactly affine mono depth and identical normals give ~0 prior losses
+    assert terms2["depth"] < 1e-8 and terms2["normal"] < 1e-5
+    _, terms3, status3 = compute_losses(out, full, LossParams(w_mask=0.0))
+    assert "mask" not in terms3 and status3["mask"] == "off: weight 0"
+
+
+def synthetic_views(n=8, size=24):
+    K, W = ring_cameras(n, size=size, f=30.0)
+    field = SphereField(0.5)
+    p = RenderParams(n_uniform=8, n_importance=24, cache_res=32)
+    cache = SDFCache(32, 1.0)
+    cache.update(lambda x: field.sdf(x))
+    imgs, masks = [], []
+    for i in range(n):
+        o = render_image(field, K[i], W[i], size, size, p, cache=cache, background=Background("black"))
+        imgs.append(o["rgb"])
+        masks.append(o["opacity"] > 0.5)
+    return Views(np.stack(imgs).astype(np.float32), K, W, np.stack(masks))
+
+
+def tiny_params(iters):
+    fp = FieldParams(kind="grid", grid_levels=3, grid_min_res=8, grid_max_res=24, decoder_width=32, dir_bands=2)
+    rp = RenderParams(n_uniform=6, n_importance=10, n_coarse=32, cache_res=24, cache_every=20,
+                      eikonal_samples=128, eikonal_uniform=32)
+    tp = TrainParams(iters=iters, batch_rays=256, image_size=0, warmup=10, ckpt_every=10, log_every=10, threads=1)
+    return fp, rp, tp
+
+
+def test_training_loss_falls_and_checkpoint_roundtrip(tmp_path):
+    views = synthetic_views()
+    fp, rp, tp = tiny_params(200)
+    tr = Trainer(views, fp, rp, LossParams(), tp)
+    losses = []
+    tr.train(callback=lambda t, info: losses.append(info["loss_rgb"]))
+    assert np.mean(losses[-3:]) < 0.6 * np.mean(losses[:2])
+    out = tr.render_view(0)
+    assert psnr(out["rgb"], views.images[0], views.masks[0]) > 15
+    path = tmp_path / "ck.pt"
+    tr.save(path)
+    tr2 = Trainer(views, fp, rp, LossParams(), tp)
+    tr2.load(path)
+    assert tr2.step == tr.step
+    s1 = tr.field.sdf(torch.zeros(1, 3))
+    s2 = tr2.field.sdf(torch.zeros(1, 3))
+    assert torch.allclose(s1, s2)
+
+
+def test_rollback_on_injected_nan():
+    views = synthetic_views(n=4, size=16)
+    fp, rp, tp = tiny_params(40)
+    tr = Trainer(views, fp, rp, LossParams(), tp)
+    for _ in range(15):
+        tr.train_step()
+    assert tr.step == 15
+    r = tr.train_step(inject_nan=True)
+    assert r.get("rollback") and tr.step == 10 and tr.rollbacks == 1
+    assert tr.lr_scale == pytest.approx(0.5)
+    assert tr.events[-1]["event"] == "rollback"
+    for p in tr.field.parameters():
+        assert torch.isfinite(p).all()
+    tr.train(iters=20)
+    assert tr.step == 20
+
+
+def test_band_weights_interface():
+    for kind in ("grid", "mlp"):
+        fp = FieldParams(kind=kind, mlp_width=128, mlp_depth=4, mlp_skip=-1, color_width=16, color_depth=1,
+                         grid_levels=3, grid_max_res=16)
+        f = make_field(fp)
+        x = torch.rand(10, 3) - 0.5
+        L = f.n_bands
+        a = f.sdf(x, torch.ones(10, L))
+        b = f.sdf(x)
+        assert torch.allclose(a, b)
+        # initial surface is (about) the sphere of init_radius: exact for grid, approximate for mlp
+        x5 = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1) * 0.5
+        assert abs(float(f.sdf(x5).detach().mean())) < (0.01 if kind == "grid" else 0.1)
+        g, _ = f.gradient(x)
+        assert g.shape == (10, 3)

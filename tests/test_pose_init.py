@@ -1,0 +1,254 @@
+"""Pose initialisation (manifoldneus/pose_init.py) on the synthetic scene with exact ground truth.
+
+One session fixture renders a 20-view 192 px scene and runs the project's SIFT + verified
+matching on it; GT poses and depth are used only to evaluate (and, for the successor test, as
+the "rendered" depth of already-placed views)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from manifoldneus import pose_init as PI
+from manifoldneus.cameras import camera_centers, look_at_w2c, rotation_angle_deg, transform_w2c
+from manifoldneus.pose_metrics import evaluate_poses
+
+N_VIEWS, RES = 20, 192
+
+
+@pytest.fixture(scope="session")
+def scene_matches():
+    from manifoldneus import synthetic
+    from stages.features import extract_all
+    from stages.matching import exhaustive_pairs, match_pairs
+
+    s = synthetic.make_scene(seed=0, n_views=N_VIEWS, resolution=RES)
+    feats = extract_all(s.images, workers=2)
+    res = match_pairs(feats, exhaustive_pairs(N_VIEWS), s.K, workers=2)
+    pairs = PI.pairs_from_matches(res)
+    kps = [f["keypoints"] for f in feats]
+    W = PI.covisibility_from_pairs(pairs, N_VIEWS)
+    return s, kps, pairs, W
+
+
+@pytest.fixture(scope="session")
+def init_all(scene_matches):
+    s, kps, pairs, W = scene_matches
+    return PI.init_from_matches(list(range(N_VIEWS)), s.K, kps, pairs, W)
+
+
+def _greedy_anchors(W: np.ndarray, k: int) -> list[int]:
+    """A connected, well co-visible subset (what MaVOS anchors look like): start at the largest
+    c_i, add the view with the most matches to the set."""
+    sel = [int(np.argmax(W.sum(1)))]
+    while len(sel) < k:
+        score = W[:, sel].sum(1)
+        score[sel] = -1
+        sel.append(int(np.argmax(score)))
+    return sel
+
+
+def _centre_err_frac(w2c_est, w2c_gt, valid=None):
+    ev = evaluate_poses(w2c_est, w2c_gt, valid=valid)
+    dist = np.linalg.norm(camera_centers(w2c_gt), axis=1).mean()  # GT camera distance to the object centre
+    return ev, np.nanmean(ev["center_err"]) / dist, np.nanmax(ev["center_err"]) / dist
+
+
+# --------------------------------------------------------------------------- geometry units
+
+
+def test_triangulate_and_bundle_adjust_exact():
+    rng = np.random.default_rng(0)
+    from manifoldneus.synthetic import camera_poses, intrinsics
+
+    w2c = camera_poses(8)
+    K = np.broadcast_to(intrinsics(200, 200), (8, 3, 3)).copy()
+    X = rng.uniform(-0.5, 0.5, (300, 3))
+    cam = np.repeat(np.arange(8), 300)
+    pt = np.tile(np.arange(300), 8)
+    Xc = np.einsum("oij,oj->oi", w2c[cam, :3, :3], X[pt]) + w2c[cam, :3, 3]
+    uv = PI._project(K[cam], Xc)
+    # DLT recovers the points exactly
+    xn = PI._normalised(K[cam], uv)
+    idx = PI._padded(pt, 300)
+    Xt = PI.triangulate_multiview(w2c[cam, :3, :3], w2c[cam, :3, 3], xn, idx)
+    assert np.abs(Xt - X).max() < 1e-8
+    # BA from perturbed poses/points converges back to zero error (gauge: camera 0 fixed, camera 1 one coordinate)
+    from scipy.spatial.transform import Rotation
+
+    R0 = Rotation.from_rotvec(rng.normal(0, 0.01, (8, 3))).as_matrix() @ w2c[:, :3, :3]
+    t0 = w2c[:, :3, 3] + rng.normal(0, 0.01, (8, 3))
+    R0[0], t0[0] = w2c[0, :3, :3], w2c[0, :3, 3]
+    free = np.ones((8, 6), bool)
+    free[0] = False
+    k = int(np.argmax(np.abs(w2c[1, :3, 3])))
+    t0[1, k] = w2c[1, k, 3]
+    free[1, 3 + k] = False
+    R, t, Xb, info = PI.bundle_adjust(K, R0, t0, X + rng.normal(0, 0.01, X.shape), cam, pt, uv, free)
+    assert np.median(info["err_before"]) > 1.0
+    assert info["err_after"].max() < 1e-4, info["status"]
+    assert rotation_angle_deg(R @ np.swapaxes(w2c[:, :3, :3], 1, 2)).max() < 1e-5
+    assert np.abs(t - w2c[:, :3, 3]).max() < 1e-6
+
+
+def test_identity_init_looks_at_origin():
+    w2c = PI.identity_init(5, distance=3.0)
+    assert w2c.shape == (5, 4, 4)
+    assert np.allclose(w2c, w2c[0])
+    C = camera_centers(w2c)
+    assert np.allclose(C, [0, 0, -3.0])
+    # optical axis (third row of R, OpenCV +z) points from the centre to the origin; the origin projects to the centre
+    axis = w2c[0, 2, :3]
+    assert np.allclose(axis, -C[0] / np.linalg.norm(C[0]))
+    assert np.allclose(w2c[0, :3, :3] @ np.zeros(3) + w2c[0, :3, 3], [0, 0, 3.0])
+    # image up (-y of the camera) is world -y
+    assert np.allclose(w2c[0, :3, :3].T @ np.array([0, -1.0, 0]), [0, -1.0, 0])
+
+
+# --------------------------------------------------------------------------- anchors from matches
+
+
+def test_init_from_matches_all_views(init_all, scene_matches):
+    s, *_ = scene_matches
+    out = init_all
+    assert out.w2c.shape == (N_VIEWS, 4, 4)
+    assert out.placed.all() and not out.unplaced
+    ev, c_mean, c_max = _centre_err_frac(out.w2c, s.w2c)
+    assert ev["summary"]["rot_err_deg"]["mean"] < 1.0, ev["summary"]["rot_err_deg"]
+    assert c_mean < 0.02 and c_max < 0.05, (c_mean, c_max)
+    d = out.diagnostics
+    assert d["reproj_after_ba_px"]["median"] < 0.5
+    assert d["reproj_after_ba_px"]["median"] <= d["reproj_before_ba_px"]["median"]
+    assert len(out.tree_edges) == N_VIEWS - 1
+
+
+def test_unit_sphere_gauge(init_all):
+    out = init_all
+    P = out.points
+    assert len(P) > 200
+    med = np.median(P, axis=0)
+    assert np.linalg.norm(med) < 1e-9
+    r95 = np.percentile(np.linalg.norm(P - med, axis=1), 95)
+    assert abs(r95 - 0.8) < 1e-6
+    # cameras are outside the unit sphere and look at the object
+    C = camera_centers(out.w2c)
+    assert (np.linalg.norm(C, axis=1) > 1.5).all()
+    z_centre = out.w2c[:, 2, :3] @ np.zeros(3) + out.w2c[:, 2, 3]
+    assert (z_centre > 0).all()
+    # the gauge matrix maps reconstruction-frame poses to the returned ones (pure scale + shift)
+    G = out.gauge
+    assert np.allclose(G[:3, :3], G[0, 0] * np.eye(3))
+
+
+def test_init_from_matches_anchor_subset(scene_matches):
+    s, kps, pairs, W = scene_matches
+    anchors = _greedy_anchors(W, 7)
+    # tuple inputs work too (the documented alternative to PairMatch)
+    tuples = [(p.i, p.j, p.matches, p.R, p.t) for p in pairs]
+    out = PI.init_from_matches(anchors, s.K, kps, tuples, W)
+    assert out.root == anchors[int(np.argmax(W[np.ix_(anchors, anchors)].sum(1)))]
+    assert out.placed.all()
+    ev, c_mean, _ = _centre_err_frac(out.w2c, s.w2c[anchors])
+    assert ev["summary"]["rot_err_deg"]["mean"] < 1.0
+    assert c_mean < 0.02
+
+
+def test_unplaceable_anchor_is_reported(scene_matches):
+    s, kps, pairs, W = scene_matches
+    anchors = _greedy_anchors(W, 6)
+    lone = next(v for v in range(N_VIEWS) if v not in anchors)
+    # the lone view keeps only 4 matches to one anchor: it cannot be placed
+    nb = anchors[0]
+    kept = []
+    for p in pairs:
+        if lone in (p.i, p.j):
+            if {p.i, p.j} == {lone, nb}:
+                kept.append(p._replace(matches=p.matches[:4]))
+            continue
+        kept.append(p)
+    out = PI.init_from_matches(anchors + [lone], s.K, kps, kept)
+    assert out.unplaced == [lone]
+    assert not out.placed[-1] and out.placed[:-1].all()
+    assert out.method[-1] == f"fallback:{nb}"
+    assert np.allclose(out.w2c[-1], out.w2c[anchors.index(nb)])
+
+
+# --------------------------------------------------------------------------- successors
+
+
+def _depth_sampler(depth_maps):
+    """depth_at(view, uv): bilinear GT z-depth (NaN where a neighbour pixel is background)."""
+
+    def depth_at(v, uv):
+        D = depth_maps[v]
+        x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5  # pixel centres at +0.5
+        x0 = np.clip(np.floor(x).astype(int), 0, D.shape[1] - 2)
+        y0 = np.clip(np.floor(y).astype(int), 0, D.shape[0] - 2)
+        fx, fy = x - x0, y - y0
+        d = np.stack([D[y0, x0], D[y0, x0 + 1], D[y0 + 1, x0], D[y0 + 1, x0 + 1]], 1).astype(np.float64)
+        w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
+        out = (d * w).sum(1)
+        out[(d <= 0).any(1)] = np.nan
+        return out
+
+    return depth_at
+
+
+def test_place_successor_pnp_with_depth(scene_matches):
+    s, kps, pairs, W = scene_matches
+    held = 13
+    placed = {v: s.w2c[v] for v in range(N_VIEWS) if v != held}
+    w2c, info = PI.place_successor(held, s.K, kps, pairs, placed, W, depth_at=_depth_sampler(s.depth))
+    assert info["method"] == "pnp", info
+    assert info["n_inliers"] >= 50
+    assert rotation_angle_deg(w2c[:3, :3] @ s.w2c[held][:3, :3].T) < 1.0
+    C, Cg = camera_centers(w2c[None])[0], camera_centers(s.w2c[held][None])[0]
+    assert np.linalg.norm(C - Cg) < 0.02 * np.linalg.norm(Cg)
+
+    # the same in a similarity-transformed world (what the current model's frame looks like)
+    sc, Rg, tg = 0.37, look_at_w2c(np.array([1.0, 2.0, 0.5]), np.zeros(3), np.array([0, 0, 1.0]))[:3, :3], np.array([0.1, -0.2, 0.3])
+    placed2 = {v: transform_w2c(p[None], sc, Rg, tg)[0] for v, p in placed.items()}
+    depth_scaled = [d * sc for d in s.depth]
+    w2c2, info2 = PI.place_successor(held, s.K, kps, pairs, placed2, W, depth_at=_depth_sampler(depth_scaled))
+    expect = transform_w2c(s.w2c[held][None], sc, Rg, tg)[0]
+    assert info2["method"] == "pnp"
+    assert rotation_angle_deg(w2c2[:3, :3] @ expect[:3, :3].T) < 1.0
+
+
+def test_place_by_pnp_with_points_and_too_few(scene_matches):
+    s, kps, pairs, W = scene_matches
+    held = 5
+    placed = {v: s.w2c[v] for v in range(N_VIEWS) if v != held}
+    uv, X, src = PI.successor_correspondences(held, kps, pairs, placed, s.K, depth_at=_depth_sampler(s.depth))
+    assert len(uv) > 100 and set(np.unique(src)) <= set(placed)
+    w2c, n = PI.place_by_pnp(s.K[held], uv, X)
+    assert w2c is not None and n > 50
+    assert rotation_angle_deg(w2c[:3, :3] @ s.w2c[held][:3, :3].T) < 1.0
+    # precomputed 3D points (per placed view and keypoint) instead of a depth callable
+    pts3d = {}
+    for v in placed:
+        Xv = PI.lift_points(s.K[v], s.w2c[v], np.asarray(kps[v], float), _depth_sampler(s.depth)(v, np.asarray(kps[v], float)))
+        pts3d[v] = Xv
+    w2c_b, info_b = PI.place_successor(held, s.K, kps, pairs, placed, W, points3d=pts3d)
+    assert info_b["method"] == "pnp" and rotation_angle_deg(w2c_b[:3, :3] @ s.w2c[held][:3, :3].T) < 1.0
+    # too few correspondences: None, no crash
+    w2c_none, n_none = PI.place_by_pnp(s.K[held], uv[:6], X[:6])
+    assert w2c_none is None and n_none <= 6
+
+
+def test_fallback_neighbour_pose(scene_matches):
+    s, kps, pairs, W = scene_matches
+    view = 9
+    neighbours = [j for j in np.argsort(-W[view]) if W[view, j] > 0]
+    best, second = int(neighbours[0]), int(neighbours[1])
+    # the view keeps only 5 matches with each of two placed views: PnP fails, the best-matching one is used
+    few = [p._replace(matches=p.matches[:5]) for p in pairs if {p.i, p.j} in ({view, best}, {view, second})]
+    placed = {best: s.w2c[best], second: s.w2c[second]}
+    w2c, info = PI.place_successor(view, s.K, kps, few, placed, W, depth_at=_depth_sampler(s.depth))
+    assert info["method"] == "fallback" and info["neighbour"] == best
+    assert np.allclose(w2c, s.w2c[best])
+    nb_pose, nb = PI.fallback_neighbour_pose(view, placed, W)
+    assert nb == best and np.allclose(nb_pose, s.w2c[best])
+    # no placed neighbour at all: reported as unplaced, no crash
+    far = {v: s.w2c[v] for v in range(N_VIEWS) if W[view, v] == 0 and v != view}
+    w2c_u, info_u = PI.place_successor(view, s.K, kps, pairs, far, W, depth_at=_depth_sampler(s.depth))
+    assert w2c_u is None and info_u["method"] == "unplaced"
