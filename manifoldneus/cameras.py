@@ -76,7 +76,7 @@ def look_at_w2c(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarr
     ``up`` is the world direction that should appear up in the image (-y of the camera)."""
     z = np.asarray(target, float) - np.asarray(eye, float)
     z /= np.linalg.norm(z)
-    x = np.cross(z, -np.asarray(up, float))
+    x = np.cross(z, np.asarray(up, float))
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     R = np.stack([x, y, z])  # rows are camera axes in world coordinates

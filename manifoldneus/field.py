@@ -311,7 +311,7 @@ class GridField(FieldBase):
         for li, lin in enumerate(self.sdf_layers):
             h = lin(h)
             if li < len(self.sdf_layers) - 1:
-                h = F.softplus(h, beta=100)
+                h = F.relu(h)
         sdf = x.norm(dim=-1) - self.p.init_radius + h[:, 0]
         # the colour decoder also reads the raw grid features (appearance detail)
         return sdf, torch.cat([h[:, 1:], gf], -1)

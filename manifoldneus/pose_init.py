@@ -175,22 +175,40 @@ def triangulate_multiview(R: np.ndarray, t: np.ndarray, xn: np.ndarray, idx: np.
 # --------------------------------------------------------------------------- bundle adjustment
 
 
+_DEBUG = False
+
+
 class _SegmentSum:
-    """Repeated sums of values grouped by fixed integer keys: ``self(values)[k] = sum(values[keys == k])``."""
+    """Repeated sums of values grouped by fixed integer keys: ``self(values)[k] = sum(values[keys == k])``
+    (a sparse indicator matrix times the values)."""
 
     def __init__(self, keys: np.ndarray, n: int):
+        from scipy.sparse import csr_matrix
+
         keys = np.asarray(keys, np.int64)
         self.n = n
-        self.order = np.argsort(keys, kind="stable")
-        ks = keys[self.order]
-        self.starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]]) if len(ks) else np.zeros(0, np.int64)
-        self.targets = ks[self.starts] if len(ks) else np.zeros(0, np.int64)
+        self.M = csr_matrix((np.ones(len(keys)), (keys, np.arange(len(keys)))), shape=(n, len(keys)))
 
     def __call__(self, values: np.ndarray) -> np.ndarray:
-        out = np.zeros((self.n,) + values.shape[1:])
-        if len(self.starts):
-            out[self.targets] = np.add.reduceat(values[self.order], self.starts, axis=0)
-        return out
+        v = values.reshape(len(values), -1)
+        return np.asarray(self.M @ v).reshape((self.n,) + values.shape[1:])
+
+
+def _solve_spd(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve a small dense symmetric positive definite system (Cholesky, torch on one thread: a
+    multi-threaded BLAS on a loaded 2-core machine makes a 300x300 factorisation ~100x slower)."""
+    import torch
+
+    prev = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        At, bt = torch.from_numpy(np.ascontiguousarray(A)), torch.from_numpy(np.ascontiguousarray(b))[:, None]
+        L, info = torch.linalg.cholesky_ex(At)
+        if int(info) == 0:
+            return torch.cholesky_solve(bt, L)[:, 0].numpy()
+        return torch.linalg.lstsq(At, bt, driver="gelsd").solution[:, 0].numpy()
+    finally:
+        torch.set_num_threads(prev)
 
 
 def _inv3(A: np.ndarray) -> np.ndarray:
@@ -235,7 +253,7 @@ def bundle_adjust(
     loss: str = "huber",
     f_scale: float = 1.0,
     max_iter: int = 50,
-    ftol: float = 1e-6,
+    ftol: float = 1e-4,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Robust bundle adjustment of poses and points: Levenberg-Marquardt with the Schur complement
     on the points (dense reduced camera system), robust loss by iteratively reweighted normal
@@ -251,7 +269,7 @@ def bundle_adjust(
     (``scipy.optimize.least_squares`` with an analytic sparse Jacobian and lsmr was tried first:
     its inexact trust-region steps stalled in the bas-relief valley of narrow-FOV cameras, far
     from the optimum, at several times the cost.)"""
-    from scipy.linalg import cho_factor, cho_solve
+    from scipy.sparse import bsr_matrix, coo_matrix
 
     K = np.asarray(K, np.float64)
     R = np.asarray(R, np.float64).copy()
@@ -268,15 +286,12 @@ def bundle_adjust(
     fidx = np.flatnonzero(free.ravel())
     Ko = K[cam]
 
-    # observation pairs sharing a point (for the Schur complement), fixed structure
-    order = np.argsort(pt, kind="stable")
-    counts = np.bincount(pt, minlength=P)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    reps = counts[pt[order]]
-    pa = np.repeat(order, reps)
-    within = np.arange(int(reps.sum())) - np.repeat(np.cumsum(reps) - reps, reps)
-    pb = order[np.repeat(starts[pt[order]], reps) + within]
-    by_cam, by_pt, by_pair = _SegmentSum(cam, V), _SegmentSum(pt, P), _SegmentSum(cam[pa] * V + cam[pb], V * V)
+    by_cam, by_pt = _SegmentSum(cam, V), _SegmentSum(pt, P)
+    # sparse structure of W (camera-point coupling blocks, 6V x 3P) and of blockdiag(V^-1) (3P x 3P)
+    w_rows = np.broadcast_to(6 * cam[:, None, None] + np.arange(6)[None, :, None], (O, 6, 3)).ravel()
+    w_cols = np.broadcast_to(3 * pt[:, None, None] + np.arange(3)[None, None, :], (O, 6, 3)).ravel()
+    v_ptr = np.arange(P + 1)
+    v_idx = np.arange(P)
     diag = np.arange(V)
 
     def residuals(R, t, X):
@@ -299,7 +314,6 @@ def bundle_adjust(
     it = n_acc = 0
     status = "max_iter"
     for it in range(1, max_iter + 1):
-        Y = Xc - t[cam]
         z = Xc[:, 2]
         iz = 1.0 / z
         d = np.zeros((O, 2, 3))
@@ -308,7 +322,7 @@ def bundle_adjust(
         d[:, 0, 2] = -(Ko[:, 0, 0] * Xc[:, 0] + Ko[:, 0, 1] * Xc[:, 1]) * iz * iz
         d[:, 1, 1] = Ko[:, 1, 1] * iz
         d[:, 1, 2] = -Ko[:, 1, 1] * Xc[:, 1] * iz * iz
-        Jc = np.concatenate([d @ -_skew(Y), d], 2)  # [O,2,6]
+        Jc = np.concatenate([d @ -_skew(Xc), d], 2)  # [O,2,6]: d Xc / d(dw, dt) = [-[Xc]x, I]
         Jp = d @ R[cam]  # [O,2,3]
         wJcT = (Jc * w[:, None, None]).transpose(0, 2, 1)  # [O,6,2]
         wJpT = (Jp * w[:, None, None]).transpose(0, 2, 1)  # [O,3,2]
@@ -317,28 +331,24 @@ def bundle_adjust(
         Wo = wJcT @ Jp  # [O,6,3]
         gc = by_cam(-(wJcT @ r[:, :, None])[:, :, 0])  # [V,6]
         gp = by_pt(-(wJpT @ r[:, :, None])[:, :, 0])  # [P,3]
-        WoT_pb = Wo[pb].transpose(0, 2, 1)
+        Wm = coo_matrix((Wo.ravel(), (w_rows, w_cols)), shape=(6 * V, 3 * P)).tocsr()
         while True:
             Ud = U + lam * (U * np.eye(6)) + 1e-12 * np.eye(6)
             Vd = Vp + lam * (Vp * np.eye(3)) + 1e-12 * np.eye(3)
             Vinv = _inv3(Vd)
-            Yo = Wo @ Vinv[pt]  # [O,6,3]
-            S = -by_pair(Yo[pa] @ WoT_pb).reshape(V, V, 6, 6)
-            S[diag, diag] += Ud
-            S = S.transpose(0, 2, 1, 3).reshape(6 * V, 6 * V)
-            rhs = (gc - by_cam((Yo @ gp[pt][:, :, None])[:, :, 0])).ravel()
+            T = (Wm @ bsr_matrix((Vinv, v_idx, v_ptr), shape=(3 * P, 3 * P))).tocsr()  # W V^-1
+            S = -(T @ Wm.T).toarray()
+            Sb = S.reshape(V, 6, V, 6)
+            Sb[diag, :, diag, :] += Ud
+            rhs = gc.ravel() - T @ gp.ravel()
             dx = np.zeros(6 * V)
             if len(fidx):
-                Sf = S[np.ix_(fidx, fidx)]
-                try:  # Cholesky: small dense SPD system (np.linalg.solve is slow under threaded OpenBLAS)
-                    dx[fidx] = cho_solve(cho_factor(Sf), rhs[fidx])
-                except (np.linalg.LinAlgError, ValueError):
-                    dx[fidx] = np.linalg.lstsq(Sf, rhs[fidx], rcond=None)[0]
+                dx[fidx] = _solve_spd(S[np.ix_(fidx, fidx)], rhs[fidx])
             dc = dx.reshape(V, 6)
-            back = by_pt((Wo.transpose(0, 2, 1) @ dc[cam][:, :, None])[:, :, 0])
-            dp = (Vinv @ (gp - back)[:, :, None])[:, :, 0]
-            R_new = _rotvec_to_mat(dc[:, :3]) @ R
-            t_new = t + dc[:, 3:]
+            dp = (Vinv @ (gp - (Wm.T @ dx).reshape(P, 3))[:, :, None])[:, :, 0]
+            dR = _rotvec_to_mat(dc[:, :3])
+            R_new = dR @ R
+            t_new = (dR @ t[:, :, None])[:, :, 0] + dc[:, 3:]
             X_new = X + dp
             r_new, Xc_new = residuals(R_new, t_new, X_new)
             cost_new, w_new = cost_of(r_new)
@@ -352,6 +362,7 @@ def bundle_adjust(
             break
         n_acc += 1
         rel = (cost - cost_new) / max(cost, 1e-300)
+        if _DEBUG: print(it, round(cost_new, 3), lam, rel, int((w < 1).sum()))
         R, t, X, r, Xc, cost, w = R_new, t_new, X_new, r_new, Xc_new, cost_new, w_new
         lam = max(lam / 10.0, 1e-9)
         if rel < ftol:
@@ -621,7 +632,7 @@ class _Recon:
         return c.min(axis=(1, 2)) < self.min_cos
 
     # -- bundle adjustment
-    def bundle_adjust(self, gauge_views, loss, f_scale, max_iter):
+    def bundle_adjust(self, gauge_views, loss, f_scale, max_iter, ftol):
         obs = np.flatnonzero(self.obs_active & self.placed[self.obs_view] & self.has_point[self.obs_track])
         tracks, pt = np.unique(self.obs_track[obs], return_inverse=True)
         cams, cam = np.unique(self.obs_view[obs], return_inverse=True)
@@ -634,7 +645,7 @@ class _Recon:
             k = int(np.argmax(np.abs(self.t[second])))
             free[np.searchsorted(cams, second), 3 + k] = False
         R, t, X, info = bundle_adjust(self.K[cams], self.R[cams], self.t[cams], self.X[tracks], cam, pt,
-                                      self.obs_uv[obs], free, loss=loss, f_scale=f_scale, max_iter=max_iter)
+                                      self.obs_uv[obs], free, loss=loss, f_scale=f_scale, max_iter=max_iter, ftol=ftol)
         self.R[cams], self.t[cams], self.X[tracks] = R, t, X
         return obs, info
 
@@ -667,6 +678,7 @@ def init_from_matches(
     ba_loss: str = "huber",
     ba_f_scale: float = 1.0,
     ba_max_iter: int = 50,
+    ba_ftol: float = 1e-4,
     ba_rounds: int = 2,
     gauge_radius: float = 0.8,
     gauge_percentile: float = 95.0,
@@ -793,7 +805,7 @@ def init_from_matches(
     for r in range(max(ba_rounds, 0)):
         if not rec.has_point.any() or rec.placed.sum() < 2:
             break
-        _, info = rec.bundle_adjust((root, second), ba_loss, ba_f_scale, ba_max_iter)
+        _, info = rec.bundle_adjust((root, second), ba_loss, ba_f_scale, ba_max_iter, ba_ftol)
         if r == 0:
             err_first_ba = info["err_after"]
         removed, dropped = rec.filter_outliers()

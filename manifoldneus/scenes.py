@@ -322,8 +322,7 @@ def read_ground_truth(ref: SceneRef, p) -> dict | None:
     if ref.kind == "synthetic":
         from manifoldneus import synthetic
 
-        s = synthetic.make_scene(seed=ref.seed, n_views=p.synthetic_views, resolution=p.synthetic_resolution)
-        return {"w2c": s.w2c, "normalization": np.eye(4), "units": "unit",
+        return {"w2c": synthetic.camera_poses(p.synthetic_views), "normalization": np.eye(4), "units": "unit",
                 "surface_points": synthetic.sample_surface(p.synthetic_surface_points, seed=ref.seed)}
     layout = detect_layout(ref.path) if p.layout == "auto" else p.layout
     if layout in ("monosdf", "idr"):

@@ -222,17 +222,14 @@ def sample_surface(n: int, seed: int = 0) -> np.ndarray:
     the parts inside another primitive are discarded."""
     rng = np.random.default_rng(seed)
     areas = _areas()
-    samplers = (_sample_box, _sample_sphere_dirs, _sample_torus)
+    samplers = (_sample_box, lambda r, m: SPHERE_CENTER + SPHERE_RADIUS * _sample_sphere_dirs(r, m), _sample_torus)
     others = ((_sdf_sphere, _sdf_torus), (_sdf_box, _sdf_torus), (_sdf_box, _sdf_sphere))
     chunks, total = [], 0
     density = 1.3 * n / areas.sum()
     while total < n:
         for k in range(3):
             m = int(np.ceil(density * areas[k]))
-            if k == 1:
-                p = SPHERE_CENTER + SPHERE_RADIUS * _sample_sphere_dirs(rng, m)
-            else:
-                p = samplers[k](rng, m)
+            p = samplers[k](rng, m)
             keep = np.ones(m, bool)
             for f in others[k]:
                 keep &= f(p) > 0.0
@@ -541,18 +538,9 @@ def camera_positions(n_views: int = 49) -> np.ndarray:
 UP = np.array([0.0, 0.0, 1.0])
 
 
-def _look_at(eye: np.ndarray) -> np.ndarray:
-    """``cameras.look_at_w2c`` towards the origin, made to show world +z up in the image
-    (rolled by 180 deg if needed: the camera's y axis, image down, must point to -z)."""
-    w2c = look_at_w2c(eye, np.zeros(3), UP)
-    if w2c[1, :3] @ UP > 0:
-        w2c[:2] *= -1.0  # 180 deg roll about the optical axis: flip camera x and y
-    return w2c
-
-
 def camera_poses(n_views: int = 49) -> np.ndarray:
     """World-to-camera poses [N,4,4] looking at the origin, world +z up in the images."""
-    return np.stack([_look_at(c) for c in camera_positions(n_views)])
+    return np.stack([look_at_w2c(c, np.zeros(3), UP) for c in camera_positions(n_views)])
 
 
 def points_visible(
@@ -561,25 +549,33 @@ def points_visible(
     """bool [P]: surface point is inside the image, front-facing and unoccluded in at least one
     view (e.g. to keep the observed part of :func:`sample_surface` for completeness).
     K [N,3,3] or [3,3], w2c [N,4,4]."""
-    p = np.asarray(points, np.float64)
+    p = np.asarray(points, np.float64).reshape(-1, 3)
     w2c = np.asarray(w2c, np.float64).reshape(-1, 4, 4)
     K = np.broadcast_to(np.asarray(K, np.float64), (len(w2c), 3, 3))
     normals = sdf_normals(p)
     seen = np.zeros(len(p), bool)
+    cand = np.arange(len(p))  # not seen yet
     for Ki, T in zip(K, w2c):
+        if len(cand) == 0:
+            break
         C = -T[:3, :3].T @ T[:3, 3]
-        xc = p @ T[:3, :3].T + T[:3, 3]
-        uv = xc @ Ki.T
-        u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
-        inside = (xc[:, 2] > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height) & ~seen
-        inside &= np.einsum("ij,ij->i", normals, C - p) > 0  # back faces are hidden (closed surface)
-        idx = np.nonzero(inside)[0]
+        q = p[cand]
+        vec = q - C
+        front = np.einsum("ij,ij->i", normals[cand], vec) < 0  # back faces are hidden (closed surface)
+        uvw = q @ (Ki @ T[:3, :3]).T + Ki @ T[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+        ok = front & (uvw[:, 2] > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        idx = np.nonzero(ok)[0]
         if len(idx) == 0:
             continue
-        vec = p[idx] - C
-        dist = np.linalg.norm(vec, axis=1)
-        blocked = np.isfinite(trace(np.broadcast_to(C, vec.shape), vec / dist[:, None], t_max=dist - tol))
-        seen[idx[~blocked]] = True
+        dist = np.linalg.norm(vec[idx], axis=1)
+        blocked = np.isfinite(trace(np.broadcast_to(C, (len(idx), 3)), vec[idx] / dist[:, None], t_max=dist - tol))
+        vis = idx[~blocked]
+        seen[cand[vis]] = True
+        keep = np.ones(len(cand), bool)
+        keep[vis] = False
+        cand = cand[keep]
     return seen
 
 

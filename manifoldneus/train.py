@@ -45,6 +45,7 @@ class TrainParams:
     image_size: int = param(96, "Train on images downscaled so the longest side is this (0 = native)", lo=0)
     lr: float = param(5e-4, "Peak learning rate of the network weights (supplement: 5e-4)", lo=0.0)
     grid_lr: float = param(1e-2, "Peak learning rate of grid features (grid field)", lo=0.0)
+    s_lr: float = param(5e-3, "Peak learning rate of the NeuS variance parameter (inv_s = exp(10 v))", lo=0.0)
     lr_min_ratio: float = param(0.05, "Final lr as a fraction of the peak (supplement: 2.5e-5 / 5e-4)", lo=0.0, hi=1.0)
     warmup: int = param(100, "Linear lr warm-up iterations (supplement: 5k of the paper's run; scale with iters)", lo=0)
     c2f_iters: int = param(0, "Global coarse-to-fine: BARF ramp of the bands over this many iterations (0 = off); "
@@ -239,9 +240,10 @@ class Trainer:
     # ------------------------------------------------------------------ setup
     def _build_optimizers(self):
         grid_params = list(self.field.grid_parameters()) if hasattr(self.field, "grid_parameters") else []
-        gid = {id(p) for p in grid_params}
+        gid = {id(p) for p in grid_params} | {id(self.field.variance)}
         net_params = [p for p in self.field.parameters() if id(p) not in gid] + list(self.background.parameters())
-        groups = [{"params": net_params, "lr": self.tp.lr, "base_lr": self.tp.lr}]
+        groups = [{"params": net_params, "lr": self.tp.lr, "base_lr": self.tp.lr},
+                  {"params": [self.field.variance], "lr": self.tp.s_lr, "base_lr": self.tp.s_lr}]
         if grid_params:
             groups.append({"params": grid_params, "lr": self.tp.grid_lr, "base_lr": self.tp.grid_lr,
                            "eps": 1e-15})

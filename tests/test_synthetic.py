@@ -191,3 +191,12 @@ def test_deterministic():
     for name in ("images", "masks", "K", "w2c", "depth", "normals"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert a.names == b.names
+
+
+def test_look_at_shows_world_up_at_the_image_top():
+    from manifoldneus.cameras import look_at_w2c
+
+    w2c = look_at_w2c(np.array([0.0, -3.0, 0.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    # camera y (image down) points to world -z; camera x (image right) to world +x
+    np.testing.assert_allclose(w2c[1, :3], [0, 0, -1], atol=1e-12)
+    np.testing.assert_allclose(w2c[0, :3], [1, 0, 0], atol=1e-12)

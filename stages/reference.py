@@ -1,0 +1,246 @@
+"""reference: the pycolmap incremental-SfM baseline on the same images.
+
+COLMAP's own SIFT extraction, exhaustive matching with its two-view verification, and
+incremental mapping, on the ingest's images, with the ingest's intrinsics held fixed (PINHOLE
+camera from K; focal length, principal point and extra parameters not refined) unless
+``intrinsics: estimate`` (PINHOLE with COLMAP's focal guess and the principal point at the image
+centre, focal length refined by bundle adjustment).
+
+Outputs:
+
+- ``poses.zarr``: ``w2c`` float64 [N,4,4] world-to-camera in the project's convention
+  (COLMAP's ``cam_from_world`` is already OpenCV-frame world-to-camera), in COLMAP's arbitrary
+  world frame and scale (align with a similarity before comparing); ``registered`` bool [N]
+  (unregistered views get the identity pose, so the array is NaN-free); ``K`` float64 [N,3,3]
+  of the cameras used (the ingest's K when fixed); ``points3d`` float64 [P,3] and
+  ``points3d_rgb`` uint8 [P,3] of the sparse model.
+- ``sparse/``: the COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``);
+  image names are ``<view name>.png``.
+
+Metrics: ``extract_match_seconds`` (COLMAP feature extraction + exhaustive matching and
+verification, reading PNGs written beforehand) and ``mapping_seconds`` (incremental mapping)
+separately, registered count, unregistered view names.
+"""
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from manifoldneus.config import param
+from manifoldneus.io import load_arrays, load_json, save_arrays
+
+
+@dataclass
+class Params:
+    """Section `reference` of params.yaml."""
+
+    intrinsics: str = param(
+        "fixed", "fixed: the ingest's K held constant; estimate: COLMAP estimates the focal length", choices=["fixed", "estimate"]
+    )
+    max_features: int = param(8192, "COLMAP SIFT max_num_features per image", lo=1)
+    num_threads: int = param(2, "Threads for COLMAP extraction, matching and mapping (-1 = all cores)", lo=-1)
+    seed: int = param(0, "Random seed of COLMAP's RANSAC and mapper", lo=0)
+    min_num_matches: int = param(15, "Minimum verified matches of a pair used by the mapper", lo=1)
+
+
+UPSTREAM = ("ingest",)
+SECTIONS = ("reference",)
+OUTPUTS = ("poses.zarr", "sparse")
+
+
+# --------------------------------------------------------------------------- plain functions
+
+
+def _same_K(K: np.ndarray, tol: float = 1e-3) -> bool:
+    return bool(np.all(np.abs(K - K[0]) < tol))
+
+
+def run_colmap(
+    image_dir: Path,
+    names: list[str],
+    K: np.ndarray | None,
+    work_dir: Path,
+    *,
+    intrinsics: str = "fixed",
+    max_features: int = 8192,
+    num_threads: int = 2,
+    seed: int = 0,
+    min_num_matches: int = 15,
+    log=None,
+) -> dict:
+    """pycolmap extraction + exhaustive matching + incremental mapping.
+
+    image_dir holds ``names`` (file names); K: [N,3,3] pixel intrinsics in COLMAP's convention
+    (top-left pixel centre at (0.5, 0.5), the project's too), required when intrinsics="fixed".
+    Returns dict(w2c [N,4,4], registered [N], K [N,3,3], points3d, points3d_rgb,
+    reconstruction (pycolmap.Reconstruction or None), extract_match_seconds, mapping_seconds,
+    n_models).
+    """
+    import pycolmap
+
+    say = log.info if log is not None else (lambda *_: None)
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db = work_dir / "database.db"
+    if db.exists():
+        db.unlink()
+    n = len(names)
+    if num_threads == 0:
+        num_threads = -1
+    pycolmap.set_random_seed(seed)
+
+    fixed = intrinsics == "fixed"
+    if fixed and K is None:
+        raise ValueError("reference.intrinsics=fixed needs intrinsics K from the ingest")
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    if fixed and _same_K(K):
+        camera_mode = pycolmap.CameraMode.SINGLE
+        k = K[0]
+        reader.camera_params = ",".join(f"{v:.10g}" for v in (k[0, 0], k[1, 1], k[0, 2], k[1, 2]))
+    elif fixed:
+        camera_mode = pycolmap.CameraMode.PER_IMAGE  # per-view K written into the database below
+    else:
+        camera_mode = pycolmap.CameraMode.SINGLE
+
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = num_threads
+    extraction.sift.max_num_features = max_features
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = seed
+
+    t0 = time.perf_counter()
+    pycolmap.extract_features(
+        db, image_dir, image_names=list(names), camera_mode=camera_mode, reader_options=reader,
+        extraction_options=extraction, device=pycolmap.Device.cpu,
+    )
+    if fixed and camera_mode == pycolmap.CameraMode.PER_IMAGE:
+        database = pycolmap.Database.open(str(db))
+        index = {nm: v for v, nm in enumerate(names)}
+        for image in database.read_all_images():
+            cam = database.read_camera(image.camera_id)
+            k = K[index[image.name]]
+            cam.params = [k[0, 0], k[1, 1], k[0, 2], k[1, 2]]
+            cam.has_prior_focal_length = True
+            database.update_camera(cam)
+        database.close()
+    pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu)
+    t_extract = time.perf_counter() - t0
+    say(f"pycolmap extraction + exhaustive matching: {t_extract:.2f} s")
+
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = num_threads
+    opts.random_seed = seed
+    opts.min_num_matches = min_num_matches
+    opts.ba_refine_principal_point = False
+    opts.ba_refine_extra_params = False
+    opts.ba_refine_focal_length = not fixed
+    opts.mapper.abs_pose_refine_focal_length = not fixed
+    opts.mapper.abs_pose_refine_extra_params = False
+    out_dir = work_dir / "models"
+    out_dir.mkdir(exist_ok=True)
+    t0 = time.perf_counter()
+    models = pycolmap.incremental_mapping(db, image_dir, out_dir, options=opts)
+    t_map = time.perf_counter() - t0
+    say(f"pycolmap incremental mapping: {t_map:.2f} s, {len(models)} model(s)")
+
+    w2c = np.tile(np.eye(4), (n, 1, 1))
+    registered = np.zeros(n, bool)
+    K_out = np.array(K, np.float64) if K is not None else np.zeros((n, 3, 3))
+    rec = None
+    if models:
+        rec = max(models.values(), key=lambda r: r.num_reg_images())
+        index = {nm: v for v, nm in enumerate(names)}
+        for image in rec.images.values():
+            if image.name not in index or not image.has_pose:
+                continue
+            v = index[image.name]
+            w2c[v, :3, :4] = np.asarray(image.cam_from_world().matrix(), np.float64)
+            registered[v] = True
+            cam = image.camera
+            fx, fy, cx, cy = (list(cam.params) + [0, 0, 0, 0])[:4] if cam.model.name == "PINHOLE" else (
+                cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y
+            )
+            K_out[v] = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+        pts = [(p.xyz, p.color) for p in rec.points3D.values()]
+    else:
+        pts = []
+    return {
+        "w2c": w2c,
+        "registered": registered,
+        "K": K_out,
+        "points3d": np.array([p[0] for p in pts], np.float64).reshape(-1, 3),
+        "points3d_rgb": np.array([p[1] for p in pts], np.uint8).reshape(-1, 3),
+        "reconstruction": rec,
+        "extract_match_seconds": float(t_extract),
+        "mapping_seconds": float(t_map),
+        "n_models": len(models),
+    }
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def run(ctx) -> None:
+    from manifoldneus.io import save_png
+
+    p: Params = ctx.params
+    src = Path(ctx.input("ingest"))
+    meta = load_json(src / "views.json")
+    names = list(meta["names"])
+    arrays = load_arrays(src / "views.zarr", ["images", "K"])
+    files = [f"{Path(nm).stem if Path(nm).suffix else nm}.png" for nm in names]
+    if len(set(files)) != len(files):
+        files = [f"{v:06d}.png" for v in range(len(names))]
+
+    tmp = Path(tempfile.mkdtemp(prefix="manifoldneus_reference_"))
+    try:
+        image_dir = tmp / "images"
+        image_dir.mkdir()
+        for f, im in zip(files, arrays["images"]):
+            save_png(image_dir / f, im)
+        res = run_colmap(
+            image_dir, files, arrays["K"].astype(np.float64), tmp, intrinsics=p.intrinsics, max_features=p.max_features,
+            num_threads=p.num_threads, seed=p.seed, min_num_matches=p.min_num_matches, log=ctx.log,
+        )
+        sparse = Path(ctx.out) / "sparse"
+        sparse.mkdir()
+        if res["reconstruction"] is not None:
+            res["reconstruction"].write_text(str(sparse))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    save_arrays(
+        Path(ctx.out) / "poses.zarr",
+        {k: res[k] for k in ("w2c", "registered", "K", "points3d", "points3d_rgb")},
+        attrs={
+            "names": names,
+            "colmap_names": files,
+            "frame": "COLMAP world frame (arbitrary similarity); OpenCV camera frame, world-to-camera",
+            "intrinsics": p.intrinsics,
+        },
+        chunk_first=False,
+    )
+    reg = res["registered"]
+    missing = [names[v] for v in np.flatnonzero(~reg)]
+    if missing:
+        ctx.log.warning(f"pycolmap left {len(missing)} of {len(names)} views unregistered: {', '.join(missing)}")
+    ctx.log.info(
+        f"pycolmap registered {int(reg.sum())}/{len(names)} views, {len(res['points3d'])} points, "
+        f"{res['n_models']} model(s)"
+    )
+    ctx.metrics["n_registered"] = int(reg.sum())
+    ctx.metrics["n_views"] = len(names)
+    ctx.metrics["unregistered_views"] = ", ".join(missing)
+    ctx.metrics["n_points3d"] = int(len(res["points3d"]))
+    ctx.metrics["n_models"] = int(res["n_models"])
+    ctx.metrics["extract_match_seconds"] = res["extract_match_seconds"]
+    ctx.metrics["mapping_seconds"] = res["mapping_seconds"]
+    ctx.metrics["intrinsics"] = p.intrinsics
