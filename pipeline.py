@@ -35,7 +35,11 @@ import types
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
+# Small dense solves (BA, Umeyama, eigh) are slower with threaded OpenBLAS on a loaded 2-core
+# machine than on one thread; torch keeps its own thread pool (run.threads).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import yaml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))

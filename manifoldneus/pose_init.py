@@ -8,10 +8,10 @@ Three initialisers, all returning world-to-camera poses in the conventions of
   per-edge translation scales fixed by triangulation (incremental SfM-lite: each new view gets the
   tree edge's pose scaled against the points triangulated so far, or a PnP-RANSAC pose against
   them, whichever explains more points), a robust bundle adjustment of poses and points
-  (``scipy.optimize.least_squares``, analytic sparse Jacobian), and a gauge fix: a similarity that
-  centres the triangulated points' median at the origin and scales their robust radius
-  (``gauge_percentile``-th percentile distance from the median) to ``gauge_radius`` (0.8), so the
-  object sits inside the unit sphere. The world's orientation is the root camera's.
+  (:func:`bundle_adjust`: Levenberg-Marquardt with a Schur complement, Huber loss), and a gauge
+  fix: a similarity that centres the triangulated points' median at the origin and scales their
+  robust radius (``gauge_percentile``-th percentile distance from the median) to ``gauge_radius``
+  (0.8), so the object sits inside the unit sphere. The world's orientation is the root camera's.
 * :func:`identity_init` ("identity", the paper's wording): every view at the same canonical pose.
 * Successors: :func:`place_by_pnp` (PnP-RANSAC of a view's matches to already-optimised views,
   the placed views' keypoints lifted to 3D with depth rendered from the current model or with given
@@ -22,9 +22,17 @@ Pair input (the ``matching`` stage's layout, ``stages/matching.py``): one :class
 pair ``(i, j)`` with the verified inliers as keypoint-index pairs ``[M,2]`` (index in view i,
 index in view j) and the relative pose of the essential matrix, camera i -> camera j:
 ``x_j = R @ x_i + t`` with ``|t| = 1`` (``w2c_j = [R | t] @ w2c_i`` up to the scale of t).
-:func:`pairs_from_matches` builds the list from the arrays of ``matches.zarr``.
+:func:`pairs_from_matches` builds the list from the arrays of ``matches.zarr``. Typical use::
 
-Intrinsics are assumed to have zero skew and ``K[1, 0] = K[2, :2] = 0`` (the canonical ingest).
+    feats, _ = stages.features.load_features(features_dir / "features.zarr")
+    arrays, _ = stages.matching.load_matches(matches_dir / "matches.zarr")
+    pairs = pose_init.pairs_from_matches(arrays)
+    kps = [f["keypoints"] for f in feats]
+    res = pose_init.init_from_matches(anchors, K, kps, pairs, W)      # res.w2c [A,4,4], res.diagnostics
+    # successors, later (placed = {view: current w2c} of the optimised views):
+    w2c, info = pose_init.place_successor(v, K, kps, pairs, placed, W, depth_at=render_z_depth)
+
+Intrinsics: ``K[1, 0] = K[2, 0] = K[2, 1] = 0``, ``K[2, 2] = 1`` (skew allowed; OpenCV's PnP ignores it).
 """
 from __future__ import annotations
 
@@ -67,7 +75,8 @@ def pairs_from_matches(arrays: dict, min_inliers: int = 1) -> list[PairMatch]:
         if len(m) < max(min_inliers, 1):
             continue
         out.append(
-            PairMatch(int(pairs[p, 0]), int(pairs[p, 1]), np.asarray(m, np.int64), np.asarray(arrays["R"][p], np.float64),
+            PairMatch(int(pairs[p, 0]), int(pairs[p, 1]), np.asarray(m, np.int64),
+                      np.asarray(arrays["R"][p], np.float64),
                       np.asarray(arrays["t"][p], np.float64), bool(valid[p]))
         )
     return out
@@ -175,9 +184,6 @@ def triangulate_multiview(R: np.ndarray, t: np.ndarray, xn: np.ndarray, idx: np.
 # --------------------------------------------------------------------------- bundle adjustment
 
 
-_DEBUG = False
-
-
 class _SegmentSum:
     """Repeated sums of values grouped by fixed integer keys: ``self(values)[k] = sum(values[keys == k])``
     (a sparse indicator matrix times the values)."""
@@ -260,8 +266,9 @@ def bundle_adjust(
     equations (losses and ``f_scale`` as in ``scipy.optimize.least_squares``).
 
     K [V,3,3]; R [V,3,3], t [V,3] initial w2c; X [P,3] initial points; observation o of point
-    pt[o] in camera cam[o] at pixel uv[o]. Pose updates are se(3)-style left perturbations
-    ``R <- exp(dw) R``, ``t <- t + dt``. free [V,6] bool: which of (dw, dt) per camera are
+    pt[o] in camera cam[o] at pixel uv[o]. Pose updates ``R <- exp(dw) R``, ``t <- t + dt`` (so a
+    fixed translation coordinate stays exactly fixed: that is how callers pin the scale).
+    free [V,6] bool: which of (dw, dt) per camera are
     optimised (default: all but camera 0; the caller fixes the remaining gauge freedom, e.g. one
     translation coordinate of a second camera for the scale). Residuals are in pixels.
     Returns (R, t, X, info) with per-observation errors before/after (``err_before``, ``err_after``).
@@ -322,7 +329,7 @@ def bundle_adjust(
         d[:, 0, 2] = -(Ko[:, 0, 0] * Xc[:, 0] + Ko[:, 0, 1] * Xc[:, 1]) * iz * iz
         d[:, 1, 1] = Ko[:, 1, 1] * iz
         d[:, 1, 2] = -Ko[:, 1, 1] * Xc[:, 1] * iz * iz
-        Jc = np.concatenate([d @ -_skew(Xc), d], 2)  # [O,2,6]: d Xc / d(dw, dt) = [-[Xc]x, I]
+        Jc = np.concatenate([d @ -_skew(Xc - t[cam]), d], 2)  # [O,2,6]: d Xc / d(dw, dt) = [-[R X]x, I]
         Jp = d @ R[cam]  # [O,2,3]
         wJcT = (Jc * w[:, None, None]).transpose(0, 2, 1)  # [O,6,2]
         wJpT = (Jp * w[:, None, None]).transpose(0, 2, 1)  # [O,3,2]
@@ -346,9 +353,8 @@ def bundle_adjust(
                 dx[fidx] = _solve_spd(S[np.ix_(fidx, fidx)], rhs[fidx])
             dc = dx.reshape(V, 6)
             dp = (Vinv @ (gp - (Wm.T @ dx).reshape(P, 3))[:, :, None])[:, :, 0]
-            dR = _rotvec_to_mat(dc[:, :3])
-            R_new = dR @ R
-            t_new = (dR @ t[:, :, None])[:, :, 0] + dc[:, 3:]
+            R_new = _rotvec_to_mat(dc[:, :3]) @ R
+            t_new = t + dc[:, 3:]
             X_new = X + dp
             r_new, Xc_new = residuals(R_new, t_new, X_new)
             cost_new, w_new = cost_of(r_new)
@@ -362,7 +368,6 @@ def bundle_adjust(
             break
         n_acc += 1
         rel = (cost - cost_new) / max(cost, 1e-300)
-        if _DEBUG: print(it, round(cost_new, 3), lam, rel, int((w < 1).sum()))
         R, t, X, r, Xc, cost, w = R_new, t_new, X_new, r_new, Xc_new, cost_new, w_new
         lam = max(lam / 10.0, 1e-9)
         if rel < ftol:
@@ -671,8 +676,8 @@ def init_from_matches(
     *,
     reproj_px: float = 3.0,
     min_angle_deg: float = 1.5,
-    min_scale_points: int = 6,
-    min_pnp_points: int = 12,
+    min_scale_points: int = 4,
+    min_pnp_points: int = 8,
     pnp_iterations: int = 2000,
     pnp_confidence: float = 0.9999,
     ba_loss: str = "huber",
@@ -693,19 +698,27 @@ def init_from_matches(
     masks (optional, one [H,W] bool per entry of ``view_ids``): the gauge's robust extent is then
     measured on the points seen mostly inside the foreground (when there are >= 20 of them).
 
-    1. maximum spanning tree of W restricted to the views; root = the view of largest
-       co-visibility within the set;
-    2. incremental placement in tree order: the next view is a tree child of a placed view (most
-       2D-3D correspondences first); candidates are the tree edge's relative pose with the
-       translation scaled by the median depth ratio of the pair's two-view triangulation to the
-       existing points (the root's first child fixes the unit: its baseline is 1) and a PnP-RANSAC
-       pose on the existing points; the one with more reprojection inliers wins. If the tree edge
-       cannot be used (no pose, too few shared points), other placed neighbours are tried by W;
-    3. after each placement, tracks (connected components of the pairwise matches) with >= 2
-       placed observations, all reprojecting within ``reproj_px`` and a ray angle >= ``min_angle_deg``
-       are triangulated (linear multi-view DLT);
-    4. ``ba_rounds`` robust bundle adjustments (outlier observations removed in between);
-    5. gauge: y = s (x - median(points)), s = gauge_radius / percentile(|x - median|, gauge_percentile).
+    1. maximum spanning tree of W restricted to the views (``minimum_spanning_tree`` of -W);
+       root = the view of largest co-visibility within the set (it keeps w2c = I until the gauge);
+    2. tracks = connected components of the pairwise inlier matches (a track seen twice in one view
+       loses those observations);
+    3. incremental placement: the next view is an unplaced tree child of a placed view (the one with
+       the most 2D-3D correspondences first; then non-tree neighbours of placed views). Candidate
+       poses: (a) the tree edge's essential-matrix rotation chained onto the parent, translation
+       direction from the edge and its scale from the median ratio of the existing points' depths
+       to the pair's unit-baseline two-view triangulation (>= ``min_scale_points`` shared points; the
+       root's first child fixes the unit: its baseline is 1); (b) PnP-RANSAC on the existing points
+       (>= ``min_pnp_points`` inliers). The one with more reprojection inliers (< ``reproj_px``) wins;
+       the view's observations of existing points that then reproject worse than 2 ``reproj_px`` are
+       dropped;
+    4. after each placement, tracks with >= 2 placed observations that all reproject within
+       ``reproj_px`` (in front of the cameras) and whose rays span >= ``min_angle_deg`` are
+       triangulated (linear multi-view DLT; one retry without the bad observations);
+    5. ``ba_rounds`` robust bundle adjustments (:func:`bundle_adjust`; root fixed, one translation
+       coordinate of the first placed child fixed for the scale), outlier observations
+       (>= ``reproj_px``) removed after each; views still unplaced get a second chance against the
+       refined points (and one more BA round if any is placed);
+    6. gauge: y = s (x - median(points)), s = gauge_radius / percentile(|x - median|, gauge_percentile).
 
     Views that cannot be placed keep the pose of their best-matching placed neighbour (method
     ``fallback:<id>``; ``root-copy`` if they have none) and are listed in ``unplaced``.
@@ -747,77 +760,99 @@ def init_from_matches(
     rec.placed[root] = True
     method[root] = "root"
     second = None
-    t_inc = time.perf_counter()
-    while True:
-        # candidates: unplaced views with a placed neighbour (tree children first)
-        cands = [c for c in range(V) if not rec.placed[c] and c in tree_parent and rec.placed[tree_parent[c]]]
-        others = [c for c in range(V) if not rec.placed[c] and c not in cands
-                  and any(rec.placed[n] and (n, c) in pair_of for n in range(V))]
-        done = False
-        for group in (cands, others):
-            order = sorted(group, key=lambda c: (-len(rec.correspondences(c)), -Wsub[c].max()))
-            for c in order:
-                parents = [n for n in np.argsort(-Wsub[c]) if rec.placed[n] and (n, c) in pair_of and Wsub[c, n] > 0]
-                if c in tree_parent and tree_parent[c] in parents:
-                    parents.remove(tree_parent[c])
-                    parents.insert(0, tree_parent[c])
-                best = None
-                for par in parents:
-                    p = pair_of[(par, c)]
-                    if not p.valid:
+
+    def place_all() -> int:
+        """Place views one at a time until none can be; returns how many were placed."""
+        nonlocal second
+        n_placed = 0
+        while True:
+            # candidates: unplaced views with a placed neighbour (tree children first)
+            cands = [c for c in range(V) if not rec.placed[c] and c in tree_parent and rec.placed[tree_parent[c]]]
+            others = [c for c in range(V) if not rec.placed[c] and c not in cands
+                      and any(rec.placed[n] and (n, c) in pair_of for n in range(V))]
+            done = False
+            for group in (cands, others):
+                order = sorted(group, key=lambda c: (-len(rec.correspondences(c)), -Wsub[c].max()))
+                for c in order:
+                    parents = [n for n in np.argsort(-Wsub[c])
+                               if rec.placed[n] and (n, c) in pair_of and Wsub[c, n] > 0]
+                    if c in tree_parent and tree_parent[c] in parents:
+                        parents.remove(tree_parent[c])
+                        parents.insert(0, tree_parent[c])
+                    best = None
+                    for par in parents:
+                        p = pair_of[(par, c)]
+                        if not p.valid:
+                            continue
+                        Rpc, tpc = relative_pose(p, view_ids[par], view_ids[c])
+                        est = rec.edge_pose(par, c, Rpc, tpc / max(np.linalg.norm(tpc), 1e-12), min_scale_points)
+                        if est is not None:
+                            n_in = rec.count_inliers(c, est[0], est[1])
+                            best = (est[0], est[1], n_in, "edge", int(par))
+                            break
+                    pnp = rec.pnp_pose(c, min_pnp_points, pnp_iterations, pnp_confidence)
+                    if pnp is not None:
+                        n_in = rec.count_inliers(c, pnp[0], pnp[1])
+                        if best is None or n_in > best[2]:
+                            best = (pnp[0], pnp[1], n_in, "pnp", None)
+                    if best is None:
                         continue
-                    Rpc, tpc = relative_pose(p, view_ids[par], view_ids[c])
-                    est = rec.edge_pose(par, c, Rpc, tpc / max(np.linalg.norm(tpc), 1e-12), min_scale_points)
-                    if est is not None:
-                        n_in = rec.count_inliers(c, est[0], est[1])
-                        best = (est[0], est[1], n_in, "edge", int(par))
-                        break
-                pnp = rec.pnp_pose(c, min_pnp_points, pnp_iterations, pnp_confidence)
-                if pnp is not None:
-                    n_in = rec.count_inliers(c, pnp[0], pnp[1])
-                    if best is None or n_in > best[2]:
-                        best = (pnp[0], pnp[1], n_in, "pnp", None)
-                if best is None:
-                    continue
-                if rec.placed.sum() > 1 and best[2] < min_scale_points:
-                    continue
-                rec.R[c], rec.t[c] = best[0], best[1]
-                rec.placed[c] = True
-                method[c] = best[3]
-                if second is None:
-                    second = c
-                rec.check_view(c)
-                n_new = rec.triangulate()
-                say(f"  placed view {view_ids[c]} ({best[3]}{'' if best[4] is None else f' from {view_ids[best[4]]}'}): "
-                    f"{best[2]} inliers, +{n_new} points ({int(rec.has_point.sum())} total)")
-                done = True
-                break
-            if done:
-                break
-        if not done:
-            break
-    t_ba = time.perf_counter()
-    obs0 = np.flatnonzero(rec.obs_active & rec.placed[rec.obs_view] & rec.has_point[rec.obs_track])
-    err_before = rec.errors(obs0)[0] if len(obs0) else np.zeros(0)
+                    if rec.placed.sum() > 1 and best[2] < min_scale_points:
+                        continue
+                    rec.R[c], rec.t[c] = best[0], best[1]
+                    rec.placed[c] = True
+                    method[c] = best[3]
+                    if second is None:
+                        second = c
+                    rec.check_view(c)
+                    n_new = rec.triangulate()
+                    src = "" if best[4] is None else f" from {view_ids[best[4]]}"
+                    say(f"  placed view {view_ids[c]} ({best[3]}{src}): "
+                        f"{best[2]} inliers, +{n_new} points ({int(rec.has_point.sum())} total)")
+                    done = True
+                    n_placed += 1
+                    break
+                if done:
+                    break
+            if not done:
+                return n_placed
+
     ba_infos = []
-    err_first_ba = err_before
     n_removed = 0
-    for r in range(max(ba_rounds, 0)):
-        if not rec.has_point.any() or rec.placed.sum() < 2:
-            break
+
+    def ba_round(r: int) -> np.ndarray:
+        nonlocal n_removed
         _, info = rec.bundle_adjust((root, second), ba_loss, ba_f_scale, ba_max_iter, ba_ftol)
-        if r == 0:
-            err_first_ba = info["err_after"]
         removed, dropped = rec.filter_outliers()
         n_removed += removed
         ba_infos.append({"iterations": info["iterations"], "status": info["status"], "n_obs": info["n_obs"],
-                         "n_points": info["n_points"], "cost_before": info["cost_before"], "cost_after": info["cost_after"],
+                         "n_points": info["n_points"], "cost_before": info["cost_before"],
+                         "cost_after": info["cost_after"],
                          "removed_obs": removed, "dropped_points": dropped})
-        say(f"  BA round {r}: {info['n_obs']} obs, {info['n_points']} points, {info['iterations']} iterations ({info['status']}), "
-            f"median error {np.median(info['err_before']):.3f} -> {np.median(info['err_after']):.3f} px, "
+        say(f"  BA round {r}: {info['n_obs']} obs, {info['n_points']} points, {info['iterations']} iterations "
+            f"({info['status']}), median error {np.median(info['err_before']):.3f} -> "
+            f"{np.median(info['err_after']):.3f} px, "
             f"{removed} outlier observations removed")
-        # views may have lost support; new points can be triangulated with refined poses
-        rec.triangulate()
+        rec.triangulate()  # refined poses may triangulate tracks that failed the checks before
+        return info["err_after"]
+
+    t_inc = time.perf_counter()
+    place_all()
+    t_ba = time.perf_counter()
+    obs0 = np.flatnonzero(rec.obs_active & rec.placed[rec.obs_view] & rec.has_point[rec.obs_track])
+    err_before = rec.errors(obs0)[0] if len(obs0) else np.zeros(0)
+    err_first_ba = err_before
+    can_ba = rec.has_point.any() and rec.placed.sum() >= 2
+    for r in range(max(ba_rounds, 0) if can_ba else 0):
+        e = ba_round(r)
+        if r == 0:
+            err_first_ba = e
+    n_retry = 0
+    if not rec.placed.all() and can_ba and ba_rounds > 0:
+        # second chance for the views that could not be placed, against the refined points
+        n_retry = place_all()
+        if n_retry:
+            ba_round(len(ba_infos))
     obs1 = np.flatnonzero(rec.obs_active & rec.placed[rec.obs_view] & rec.has_point[rec.obs_track])
     err_after = rec.errors(obs1)[0] if len(obs1) else np.zeros(0)
     t_gauge = time.perf_counter()
@@ -845,10 +880,9 @@ def init_from_matches(
     if len(gpts) >= 3:
         centre = np.median(gpts, axis=0)
         radius = float(np.percentile(np.linalg.norm(gpts - centre, axis=1), gauge_percentile))
-    else:  # no structure: use the cameras
-        C = camera_centers(np.concatenate([rec.R, rec.t[..., None]], -1)[rec.placed])
-        centre = C.mean(0)
-        radius = float(max(np.linalg.norm(C - centre, axis=1).max(), 1e-9)) if len(C) > 1 else 1.0
+    else:  # no structure (e.g. a single view): the root looks at the origin from identity_init's distance
+        centre = camera_centers(np.concatenate([rec.R[root], rec.t[root][:, None]], 1)) + 3.0 * rec.R[root][2]
+        radius = gauge_radius
     s = gauge_radius / max(radius, 1e-12)
     G = sim3_matrix(s, np.eye(3), -s * centre)
     w2c_rec = to_4x4(np.concatenate([rec.R, rec.t[..., None]], -1))
@@ -871,6 +905,7 @@ def init_from_matches(
         say(f"  could not place views {unplaced}: neighbour poses used")
 
     t_end = time.perf_counter()
+    kinds = [m.split(":")[0] for m in method]
     diag = {
         "n_views": V,
         "n_placed": int(rec.placed.sum()),
@@ -886,11 +921,12 @@ def init_from_matches(
         "reproj_after_ba_px": _err_stats(err_after),  # final poses/points, final inlier observations
         "ba_rounds": ba_infos,
         "ba_removed_obs": int(n_removed),
+        "placed_after_ba": int(n_retry),
         "gauge_scale": float(s),
         "gauge_centre": centre.tolist(),
         "gauge_radius_before": radius,
         "gauge_points": "foreground" if (masks is not None and in_mask.sum() >= 20) else "all",
-        "methods": {m: int(sum(1 for x in method if x.split(":")[0] == m)) for m in sorted({x.split(":")[0] for x in method})},
+        "methods": {m: kinds.count(m) for m in sorted(set(kinds))},
         "seconds_incremental": t_ba - t_inc,
         "seconds_ba": t_gauge - t_ba,
         "seconds_total": t_end - t_start,
@@ -920,7 +956,9 @@ def identity_init(n: int, distance: float = 3.0) -> np.ndarray:
 # --------------------------------------------------------------------------- successors
 
 
-def lift_points(K: np.ndarray, w2c: np.ndarray, uv: np.ndarray, depth: np.ndarray, ray_distance: bool = False) -> np.ndarray:
+def lift_points(
+    K: np.ndarray, w2c: np.ndarray, uv: np.ndarray, depth: np.ndarray, ray_distance: bool = False
+) -> np.ndarray:
     """Back-project pixels uv [M,2] of a view with depth [M] to world points [M,3].
     depth is the z-depth (along the optical axis) unless ``ray_distance`` (distance along the
     unit ray from the camera centre). Non-positive / non-finite depths give NaN points."""

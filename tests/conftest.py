@@ -1,8 +1,11 @@
 """Shared fixtures: small scenes in every layout, built by the tests themselves."""
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np
 import pytest
