@@ -39,6 +39,7 @@ from pathlib import Path
 # machine than on one thread; torch keeps its own thread pool (run.threads).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import cv2  # noqa: E402,F401  - loads the system zlib before pycolmap's own deflate symbols can shadow it
 import yaml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent

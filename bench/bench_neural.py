@@ -241,6 +241,8 @@ def main():
             trainer.field.train()
             eval_time[0] += time.time() - t0
             eval_cpu[0] += cpu_s() - c0
+            if trainer._t_start is not None:  # keep evaluations out of the lr schedule's clock
+                trainer._t_start += time.time() - t0
             r.update(step=trainer.step, train_s=el, train_cpu_s=cel, loadavg=os.getloadavg()[0])
             evals.append(r)
             print(f"  eval @ {el:.0f}s step {trainer.step}: masked PSNR {r.get('psnr_masked', float('nan')):.2f} "

@@ -16,9 +16,11 @@ Definitions, including the choices the paper leaves open (each one named here an
 * Coverage distances: ``"SE"``: ``d(i, j) = |phi_i - phi_j|``; ``"E"``: Euclidean distance of the
   raw rows of W, ``|W_i - W_j|``.
 * Normalisation over the candidates: ``(x - min) / (max - min)``; when all candidates tie
-  (``max == min``, e.g. a single candidate left) every candidate gets 0 (never NaN): a term that
-  cannot rank the candidates credits none of them. (A tie -> 1 rule would give the very last pick of
-  the last round S = 1, i.e. make the least preferred view look the most optimisable.)
+  (``max == min``) every candidate gets 0 (never NaN): a term that cannot rank the candidates
+  credits none of them. The very last pick (a single candidate left: a forced pick) is instead
+  normalised with the (min, max) of the previous pick's candidate set, clipped to [0, 1], so that its
+  S is comparable with the other picks (a tie rule would give it S = 0 or 1, an outlier that
+  dominates the min-max normalisation of S~ in the last round).
 * Greedy picking (strategy ``"mavos"``): with ``O`` the views scheduled so far and each candidate i,
   ``L_i = sum_{j in O} n_ij`` and ``C_i = min_{j in O} d(i, j)``, each normalised over the
   candidates, ``S_i = alpha L_i + (1 - alpha) C_i``; the argmax (ties: lowest index) is added to
@@ -39,6 +41,11 @@ Definitions, including the choices the paper leaves open (each one named here an
   time) min-max normalised over that set, ties -> 1 (all equally optimisable); entries of views not
   optimised in round r are 0 and ``optimised[r, i]`` is False. The per-view value ``s_tilde[i]`` is
   the one of its own round, ``S~[round_i, i]``. Excluded views have ``s_tilde = 0``.
+  Variant ``s_tilde_from="rank"`` (not in METHOD.md; default ``"score"`` is): S~ from the pick
+  order instead of the score, ``1 - rank / (n_r - 1)`` over the same set (first pick 1, last 0).
+  Why: on real graphs the greedy S at pick time clusters (e.g. scan24: 0.65..0.70, the L-best
+  candidate usually wins with C ~ 0) while the seed has S = 1, so the score-based S~ of every view
+  but the seed lies in ~[0, 0.15]; the rank variant spreads the same ordering over [0, 1].
 """
 from __future__ import annotations
 
@@ -49,6 +56,7 @@ import numpy as np
 
 DENSE_MAX = 500
 STRATEGIES = ("mavos", "fps", "uniform")
+S_TILDE_FROM = ("score", "rank")
 COVERAGES = ("SE", "E")
 
 
@@ -215,6 +223,14 @@ def normalise(x: np.ndarray) -> np.ndarray:
     return np.zeros_like(x)
 
 
+def _rescale(x: np.ndarray, lo_hi) -> np.ndarray:
+    """``(x - lo) / (hi - lo)`` clipped to [0, 1]; 0 when the range is empty."""
+    lo, hi = float(lo_hi[0]), float(lo_hi[1])
+    if not hi > lo:
+        return np.zeros_like(np.asarray(x, dtype=np.float64))
+    return np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+
 def _normalise_tie_one(x: np.ndarray) -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
     if x.size == 0:
@@ -299,6 +315,7 @@ def mavos_schedule(
     successors_per_round: int = 20,
     coverage: str = "SE",
     schedulable=None,
+    s_tilde_from: str = "score",
 ) -> Schedule:
     """Greedy MaVOS view scheduling (or an ablation variant) of the views of a co-visibility graph.
 
@@ -307,6 +324,8 @@ def mavos_schedule(
     to schedule (default: the largest connected component of W); the others are "excluded".
     """
     alpha, K, M = _validate(strategy, alpha, anchor_percent, successors_per_round, coverage)
+    if s_tilde_from not in S_TILDE_FROM:
+        raise ValueError(f"s_tilde_from: {s_tilde_from!r} is not one of {S_TILDE_FROM}")
     W = check_graph(W)
     N = W.shape[0]
     c = W.sum(1) if c is None else np.asarray(c, dtype=np.float64).reshape(-1)
@@ -361,6 +380,7 @@ def mavos_schedule(
     C_run = np.full(N, np.inf)
 
     pick_no = 0
+    ranges = None  # (min, max) of L_raw and C_raw over the last multi-candidate set
     for r, size in enumerate(sizes):
         for _ in range(size):
             cand = idx[~in_O[idx]]
@@ -370,7 +390,11 @@ def mavos_schedule(
                 Lraw, Craw = c[cand], np.zeros(len(cand))
             else:
                 Lraw, Craw = L_run[cand], C_run[cand]
-                Lc, Cc = normalise(Lraw), normalise(Craw)
+                if len(cand) == 1 and ranges is not None:  # forced pick: reuse the last candidates' ranges
+                    Lc, Cc = _rescale(Lraw, ranges[0]), _rescale(Craw, ranges[1])
+                else:
+                    Lc, Cc = normalise(Lraw), normalise(Craw)
+                    ranges = ((Lraw.min(), Lraw.max()), (Craw.min(), Craw.max()))
             Sc = Cc if strategy == "fps" else alpha * Lc + (1.0 - alpha) * Cc
             # first maximum: lowest view index (cand is sorted); the first pick is argmax c
             k = int(np.argmax(Lc if not picks else Sc))
@@ -390,7 +414,13 @@ def mavos_schedule(
     for r in range(R):
         views = np.flatnonzero((rnd >= 0) & (rnd <= r))
         optimised[r, views] = True
-        s_tilde_rounds[r, views] = 1.0 if strategy == "uniform" else _normalise_tie_one(S[views])
+        if strategy == "uniform":
+            s_tilde_rounds[r, views] = 1.0
+        elif s_tilde_from == "rank":  # earlier pick = more optimisable; evenly spaced in [0, 1]
+            ranks = np.argsort(np.argsort(order[views], kind="stable"), kind="stable")
+            s_tilde_rounds[r, views] = 1.0 - ranks / max(len(views) - 1, 1) if len(views) > 1 else 1.0
+        else:
+            s_tilde_rounds[r, views] = _normalise_tie_one(S[views])
     s_tilde = np.zeros(N)
     for v in picks:
         s_tilde[v] = s_tilde_rounds[rnd[v], v]
@@ -401,6 +431,7 @@ def mavos_schedule(
         "anchor_percent": K,
         "successors_per_round": M,
         "coverage": coverage,
+        "s_tilde_from": s_tilde_from if strategy != "uniform" else "constant 1 (uniform)",
         "round_sizes": sizes,
         "n_schedulable": n,
     }

@@ -878,12 +878,10 @@ def init_from_matches(
         in_mask = n_fg > 0.5 * np.maximum(n_obs_pt, 1)
     gpts = pts[in_mask] if in_mask.sum() >= 20 else pts
     if len(gpts) >= 3:
-        centre = np.median(gpts, axis=0)
-        radius = float(np.percentile(np.linalg.norm(gpts - centre, axis=1), gauge_percentile))
+        s, centre = gauge_from_points(gpts, gauge_radius, gauge_percentile)
     else:  # no structure (e.g. a single view): the root looks at the origin from identity_init's distance
         centre = camera_centers(np.concatenate([rec.R[root], rec.t[root][:, None]], 1)) + 3.0 * rec.R[root][2]
-        radius = gauge_radius
-    s = gauge_radius / max(radius, 1e-12)
+        s = 1.0
     G = sim3_matrix(s, np.eye(3), -s * centre)
     w2c_rec = to_4x4(np.concatenate([rec.R, rec.t[..., None]], -1))
     w2c = transform_w2c(w2c_rec, s, np.eye(3), -s * centre)
@@ -924,7 +922,7 @@ def init_from_matches(
         "placed_after_ba": int(n_retry),
         "gauge_scale": float(s),
         "gauge_centre": centre.tolist(),
-        "gauge_radius_before": radius,
+        "gauge_radius_before": gauge_radius / s,
         "gauge_points": "foreground" if (masks is not None and in_mask.sum() >= 20) else "all",
         "methods": {m: kinds.count(m) for m in sorted(set(kinds))},
         "seconds_incremental": t_ba - t_inc,
@@ -939,6 +937,14 @@ def init_from_matches(
 
 
 # --------------------------------------------------------------------------- identity
+
+
+def gauge_from_points(points: np.ndarray, radius: float = 0.8, percentile: float = 95.0) -> tuple[float, np.ndarray]:
+    """Scale s and centre c of the gauge y = s (x - c): median-centred, the ``percentile``-th
+    percentile distance of the points mapped to ``radius`` (the object fits the unit sphere)."""
+    centre = np.median(points, axis=0)
+    extent = float(np.percentile(np.linalg.norm(points - centre, axis=1), percentile))
+    return radius / max(extent, 1e-12), centre
 
 
 def identity_init(n: int, distance: float = 3.0) -> np.ndarray:

@@ -39,7 +39,8 @@ class TrainParams:
     """Section `train`: optimisation of the neural surface."""
 
     iters: int = param(3000, "Training iterations (fast profile; the paper trains far longer)", lo=1)
-    time_budget_s: float = param(0.0, "Stop after this many seconds of training (0 = no limit)", lo=0.0)
+    time_budget_s: float = param(0.0, "Stop after this many seconds of training (0 = no limit); the lr schedules "
+                                 "then follow max(iteration / iters, elapsed / budget)", lo=0.0)
     batch_rays: int = param(1024, "Rays per iteration", lo=1)
     fg_ray_fraction: float = param(0.0, "With masks: fraction of rays drawn from foreground pixels (0 = uniform)", lo=0.0, hi=1.0)
     image_size: int = param(96, "Train on images downscaled so the longest side is this (0 = native)", lo=0)
@@ -138,16 +139,19 @@ def lr_factor(step: int, total: int, warmup: int, min_ratio: float) -> float:
     return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * prog))
 
 
-def visual_hull_aabb(views: Views, res: int = 48, radius: float = 1.0, margin: float = 0.05):
-    """Box of the masks' visual hull inside the sphere (or, without masks, of the points inside the
-    sphere seen by at least half the views). Returns (lo [3], hi [3]) numpy."""
+def visual_hull_aabb(views: Views, res: int = 48, radius: float = 1.0, margin: float = 0.05,
+                     min_seen_frac: float = 0.5, mask_agree: float = 0.9):
+    """Box of the region the views constrain: points inside the sphere seen by at least
+    ``min_seen_frac`` of the views and, with masks, inside the mask of at least ``mask_agree`` of
+    the views that see them (a visual hull tolerant to mask errors). Padded by ``margin`` of its
+    extent plus two cells. Returns (lo [3], hi [3]) numpy (the sphere's cube if nothing fits)."""
     lin = np.linspace(-radius, radius, res)
     P = np.stack(np.meshgrid(lin, lin, lin, indexing="ij"), -1).reshape(-1, 3)
     P = P[np.linalg.norm(P, axis=1) <= radius]
     Pt = torch.as_tensor(P, dtype=torch.float64)
     H, W = views.hw
-    keep = np.ones(len(P), bool)
     seen = np.zeros(len(P), int)
+    in_mask = np.zeros(len(P), int)
     for i in range(views.n):
         uv, z = project(Pt, torch.as_tensor(views.K[i]), torch.as_tensor(views.w2c[i]))
         uv, z = uv.numpy(), z.numpy()
@@ -156,11 +160,10 @@ def visual_hull_aabb(views: Views, res: int = 48, radius: float = 1.0, margin: f
         if views.masks is not None:
             c = np.clip(uv[:, 0].astype(int), 0, W - 1)
             r = np.clip(uv[:, 1].astype(int), 0, H - 1)
-            import cv2
-
-            m = cv2.dilate(views.masks[i].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-            keep &= ~inside | m[r, c]
-    keep &= seen >= (1 if views.masks is not None else max(views.n // 2, 1))
+            in_mask += inside & views.masks[i][r, c]
+    keep = seen >= max(1, int(np.ceil(min_seen_frac * views.n)))
+    if views.masks is not None:
+        keep &= in_mask >= mask_agree * seen
     if keep.sum() < 8:
         return np.full(3, -radius), np.full(3, radius)
     cell = 2 * radius / (res - 1)
@@ -229,6 +232,8 @@ class Trainer:
         self.loss_status: dict = {}
         self._good_state = None
         self._loss_ema = None
+        self._budget = 0.0
+        self._t_start = None
         self.history: list[dict] = []
         if self.masks is not None and self.tp.fg_ray_fraction > 0:
             tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
@@ -367,12 +372,22 @@ class Trainer:
                     self.lr_scale)
 
     # ------------------------------------------------------------------ training
+    def schedule_step(self) -> int:
+        """Step used by the lr schedules: the iteration, or, with a time budget, the iteration the
+        elapsed fraction of the budget corresponds to when that is further (so the cosine decay
+        completes by the budget)."""
+        if self._budget and self._t_start is not None:
+            frac = (time.time() - self._t_start) / self._budget
+            return max(self.step, int(frac * self.tp.iters))
+        return self.step
+
     def set_lr(self) -> None:
-        f = lr_factor(self.step, self.tp.iters, self.tp.warmup, self.tp.lr_min_ratio) * self.lr_scale
+        st = self.schedule_step()
+        f = lr_factor(st, self.tp.iters, self.tp.warmup, self.tp.lr_min_ratio) * self.lr_scale
         for g in self.opt.param_groups:
             g["lr"] = g["base_lr"] * f
         if self.pose_opt is not None:
-            fp = lr_factor(self.step, self.tp.iters, self.tp.pose_warmup, self.tp.pose_lr_min_ratio) * self.lr_scale
+            fp = lr_factor(st, self.tp.iters, self.tp.pose_warmup, self.tp.pose_lr_min_ratio) * self.lr_scale
             for g in self.pose_opt.param_groups:
                 g["lr"] = g["base_lr"] * fp
 
@@ -429,6 +444,9 @@ class Trainer:
         iters = self.tp.iters if iters is None else iters
         budget = self.tp.time_budget_s if time_budget_s is None else time_budget_s
         t0 = time.time()
+        if budget and self._t_start is None:
+            # the schedule follows the budget (set once, so repeated train() calls keep it)
+            self._budget, self._t_start = budget, t0
         last = {}
         self.field.train()
         while self.step < iters:

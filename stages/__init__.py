@@ -1,13 +1,40 @@
 """The pipeline's stages, in order. Each is one module; see docs/STAGES.md."""
 from manifoldneus.config import RunParams, SplitParams
+from manifoldneus.evaluation import MeshParams
+from manifoldneus.field import FieldParams
+from manifoldneus.gate import GateParams
+from manifoldneus.losses import LossParams
+from manifoldneus.render import RenderParams
+from manifoldneus.train import TrainParams
 
 STAGES = [
     "ingest",
     "ground_truth",
+    "features",
+    "matching",
+    "covisibility",
+    "spectral",
+    "schedule",
+    "reference",
+    "evaluate_poses",
+    "reference_surface",
+    "anchors",
+    "successors",
+    "mesh",
+    "evaluate",
 ]
 
 # The only stages allowed to list `ground_truth` upstream: evaluation, and references labelled as such.
 GROUND_TRUTH_READERS = {"evaluate_poses", "evaluate", "reference_surface"}
 
 # Parameter sections used by several stages (a stage's own section is its module's `Params`).
-SHARED_SECTIONS = {"run": RunParams, "split": SplitParams}
+SHARED_SECTIONS = {
+    "run": RunParams,
+    "split": SplitParams,
+    "train": TrainParams,
+    "field": FieldParams,
+    "render": RenderParams,
+    "loss": LossParams,
+    "gate": GateParams,
+    "meshing": MeshParams,
+}

@@ -137,6 +137,8 @@ def empty_features() -> dict:
 
 def extract_all(images, masks=None, *, workers: int = 2, progress=None, **kw) -> list[dict]:
     """extract_sift over a list/array of images with a thread pool; results in input order."""
+    import cv2
+
     n = len(images)
 
     def one(i):
@@ -145,9 +147,15 @@ def extract_all(images, masks=None, *, workers: int = 2, progress=None, **kw) ->
     if workers <= 1:
         it = map(one, range(n))
         return list(progress(it, total=n) if progress else it)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        it = pool.map(one, range(n))
-        return list(progress(it, total=n) if progress else it)
+    # one level of parallelism: threads over images, OpenCV single-threaded inside (restored after)
+    prev = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            it = pool.map(one, range(n))
+            return list(progress(it, total=n) if progress else it)
+    finally:
+        cv2.setNumThreads(prev)
 
 
 def pack_features(feats: list[dict]) -> dict:
@@ -176,8 +184,6 @@ def load_features(path: Path) -> tuple[list[dict], dict]:
 
 
 def run(ctx) -> None:
-    import cv2
-
     p: Params = ctx.params
     src = Path(ctx.input("ingest"))
     meta = load_json(src / "views.json")
@@ -188,7 +194,6 @@ def run(ctx) -> None:
     masks = arrays.get("masks")
     if p.use_mask and masks is None:
         ctx.log.warning("features.use_mask is on but the scene has no masks: detecting on the whole image")
-    cv2.setNumThreads(max(1, 2 // p.workers) if p.workers > 1 else -1)
 
     t0 = time.perf_counter()
     feats = extract_all(

@@ -62,13 +62,15 @@ class Params:
     )
     ratio: float = param(0.8, "Lowe ratio test: keep a match if d1 < ratio * d2 (L2 distances)", lo=0.0, hi=1.0)
     mutual: bool = param(True, "Keep only mutual nearest neighbours (cross check)")
-    method: str = param("magsac", "Robust estimator for E / F", choices=list(METHODS))
+    method: str = param("usac_accurate", "Robust estimator for E / F (OpenCV USAC variants, RANSAC, LMedS)", choices=list(METHODS))
     threshold_px: float = param(1.0, "Inlier threshold of the robust estimator, in pixels", lo=0.0)
-    confidence: float = param(0.9999, "RANSAC confidence", lo=0.0, hi=1.0)
+    confidence: float = param(0.999, "RANSAC confidence", lo=0.0, hi=1.0)
     max_iters: int = param(10000, "Maximum RANSAC iterations", lo=1)
-    min_matches: int = param(8, "Pairs with fewer raw matches are not verified (stored with 0 inliers)", lo=5)
+    min_matches: int = param(
+        15, "Pairs with fewer raw matches are not verified (stored with 0 inliers; 15 = COLMAP's min_num_inliers)", lo=5
+    )
     use_intrinsics: bool = param(True, "Essential matrix with the ingest's K; false forces the fundamental matrix")
-    workers: int = param(2, "Threads over pairs (OpenCV and torch release the GIL)", lo=1)
+    workers: int = param(2, "Threads over pairs (OpenCV and torch release the GIL; each runs single-threaded)", lo=1)
 
 
 UPSTREAM = ("ingest", "features")
@@ -141,8 +143,9 @@ def match_descriptors(d1, d2, ratio: float = 0.8, mutual: bool = True) -> np.nda
             dist = (2.0 - 2.0 * top).clamp_min(0).sqrt()
             keep &= dist[:, 0] < ratio * dist[:, 1]
         if mutual:
-            back = sim.argmax(dim=0)  # [n2]
-            keep &= back[nn] == torch.arange(n1)
+            # i -> nn[i] is mutual iff sim[i, nn[i]] is also the maximum of column nn[i]
+            # (amax is a vectorised reduction, much cheaper than argmax over dim 0)
+            keep &= top[:, 0] >= sim.amax(dim=0)[nn]
         i1 = torch.nonzero(keep).squeeze(1)
         out = torch.stack([i1, nn[i1]], 1)
     return out.numpy().astype(np.int32)
@@ -161,9 +164,9 @@ def verify_pair(
     K1: np.ndarray | None = None,
     K2: np.ndarray | None = None,
     *,
-    method: str = "magsac",
+    method: str = "usac_accurate",
     threshold_px: float = 1.0,
-    confidence: float = 0.9999,
+    confidence: float = 0.999,
     max_iters: int = 10000,
 ) -> dict:
     """Geometric verification of putative correspondences x1 <-> x2 ([M,2] pixels, same convention as K).
@@ -214,11 +217,11 @@ def match_pairs(
     *,
     ratio: float = 0.8,
     mutual: bool = True,
-    method: str = "magsac",
+    method: str = "usac_accurate",
     threshold_px: float = 1.0,
-    confidence: float = 0.9999,
+    confidence: float = 0.999,
     max_iters: int = 10000,
-    min_matches: int = 8,
+    min_matches: int = 15,
     workers: int = 2,
     progress=None,
 ) -> dict:
@@ -246,13 +249,24 @@ def match_pairs(
         )
         return raw, res["inliers"], res["R"], res["t"], res["model"], res["pose_valid"]
 
-    if workers > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            it = pool.map(one, range(len(pairs)))
+    import torch
+
+    # One level of parallelism: `workers` threads over pairs, each single-threaded inside
+    # OpenCV and torch (restored afterwards). workers=1 leaves both libraries' own threading on.
+    prev_cv, prev_torch = cv2.getNumThreads(), torch.get_num_threads()
+    try:
+        if workers > 1:
+            cv2.setNumThreads(1)
+            torch.set_num_threads(1)
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                it = pool.map(one, range(len(pairs)))
+                results = list(progress(it, total=len(pairs)) if progress else it)
+        else:
+            it = map(one, range(len(pairs)))
             results = list(progress(it, total=len(pairs)) if progress else it)
-    else:
-        it = map(one, range(len(pairs)))
-        results = list(progress(it, total=len(pairs)) if progress else it)
+    finally:
+        cv2.setNumThreads(prev_cv)
+        torch.set_num_threads(prev_torch)
 
     raws = [r[0] for r in results]
     inls = [r[0][r[1]] for r in results]
@@ -288,8 +302,6 @@ def inliers_of(arrays: dict, p: int) -> np.ndarray:
 
 
 def run(ctx) -> None:
-    import cv2
-
     p: Params = ctx.params
     src = Path(ctx.input("ingest"))
     meta = load_json(src / "views.json")
@@ -322,26 +334,21 @@ def run(ctx) -> None:
         pair_src = f"{p.pair_list} (sha256 {hashlib.sha256(Path(p.pair_list).read_bytes()).hexdigest()[:16]})"
         ctx.log.info(f"{len(pairs)} pairs from {pair_src}")
 
-    prev = cv2.getNumThreads()
-    cv2.setNumThreads(1 if p.workers > 1 else prev)
     t0 = time.perf_counter()
-    try:
-        res = match_pairs(
-            feats,
-            pairs,
-            K,
-            ratio=p.ratio,
-            mutual=p.mutual,
-            method=p.method,
-            threshold_px=p.threshold_px,
-            confidence=p.confidence,
-            max_iters=p.max_iters,
-            min_matches=p.min_matches,
-            workers=p.workers,
-            progress=lambda it, total: ctx.progress(it, total=total, desc="match pairs"),
-        )
-    finally:
-        cv2.setNumThreads(prev)
+    res = match_pairs(
+        feats,
+        pairs,
+        K,
+        ratio=p.ratio,
+        mutual=p.mutual,
+        method=p.method,
+        threshold_px=p.threshold_px,
+        confidence=p.confidence,
+        max_iters=p.max_iters,
+        min_matches=p.min_matches,
+        workers=p.workers,
+        progress=lambda it, total: ctx.progress(it, total=total, desc="match pairs"),
+    )
     seconds = time.perf_counter() - t0
 
     save_arrays(

@@ -40,6 +40,9 @@ class Params:
     successors_per_round: int = param(20, "M: views added per successor round (the last round takes the rest)", lo=1)
     coverage: str = param("SE", "Coverage distance: SE (spectral embedding) | E (Euclidean on rows of W)",
                           choices=list(mavos.COVERAGES))
+    s_tilde_from: str = param("score", "S~ from the score at pick time, min-max normalised per round (METHOD.md) | "
+                                       "rank: from the pick order (variant; see manifoldneus/mavos.py)",
+                              choices=list(mavos.S_TILDE_FROM))
 
 
 UPSTREAM = ("ingest", "covisibility", "spectral")
@@ -143,6 +146,7 @@ def run(ctx) -> None:
     sched = mavos.mavos_schedule(
         W, phi, c, strategy=p.strategy, alpha=p.alpha, anchor_percent=p.anchor_percent,
         successors_per_round=p.successors_per_round, coverage=p.coverage, schedulable=in_comp,
+        s_tilde_from=p.s_tilde_from,
     )
     excluded = np.flatnonzero(~in_comp).tolist()
     if excluded:
@@ -185,8 +189,10 @@ def run(ctx) -> None:
                                         "anchor_bottleneck_matches = weakest link of its maximum spanning tree",
         "excluded_views": excluded,
         "picks": sched.picks,
-        "s_tilde_definition": "S at pick time, min-max normalised over all views optimised in that round "
-                              "(views scheduled in rounds 0..r); ties -> 1; uniform -> 1",
+        "s_tilde_definition": ("S at pick time, min-max normalised over all views optimised in that round "
+                               "(views scheduled in rounds 0..r); ties -> 1; uniform -> 1") if p.s_tilde_from == "score"
+                              else ("1 - rank / (n_r - 1) by pick order over all views optimised in that round "
+                                    "(views scheduled in rounds 0..r); uniform -> 1"),
         "views": per_view,
     })
     plot_schedule(sched, phi, W, ctx.out / "schedule.png",

@@ -287,3 +287,34 @@ def test_bad_graphs_rejected():
         mavos_schedule(ring_graph(5), None, coverage="SE")
     with pytest.raises(ValueError, match="d"):
         spectral_embedding(ring_graph(5), d=0)
+
+
+def test_forced_last_pick_uses_previous_candidate_range():
+    W = np.zeros((4, 4))
+    W[0, 1] = W[1, 0] = 10
+    W[1, 2] = W[2, 1] = 10
+    W[0, 3] = W[3, 0] = 1
+    W[2, 3] = W[3, 2] = 5
+    s = mavos_schedule(W, None, coverage="E", alpha=1.0, anchor_percent=25, successors_per_round=3)
+    assert s.picks[0] == 1  # largest c (20)
+    assert s.picks[1] == 0  # tie 0 / 2 on L (10 each): lowest index
+    assert s.picks[2] == 2  # L_raw 10 vs view 3's 1
+    # view 3 is forced last: L_raw = 1 + 5 = 6 rescaled with the previous range (1, 10)
+    assert s.L_raw[3] == 6 and s.S[3] == pytest.approx(5 / 9)
+
+
+def test_s_tilde_from_rank():
+    W = ring_graph(10, 3.0)
+    W[2, 3] = W[3, 2] = 9.0
+    emb = spectral_embedding(W, d=4)
+    a = mavos_schedule(W, emb.phi, anchor_percent=40, successors_per_round=4)
+    b = mavos_schedule(W, emb.phi, anchor_percent=40, successors_per_round=4, s_tilde_from="rank")
+    assert a.picks == b.picks and np.allclose(a.S, b.S)
+    for r, n in enumerate([4, 8, 10]):
+        views = np.flatnonzero(b.optimised[r])
+        assert len(views) == n
+        got = b.s_tilde_rounds[r, b.picks[:n]]
+        assert np.allclose(got, 1 - np.arange(n) / (n - 1))
+    assert b.settings["s_tilde_from"] == "rank"
+    with pytest.raises(ValueError, match="s_tilde_from"):
+        mavos_schedule(W, emb.phi, s_tilde_from="order")

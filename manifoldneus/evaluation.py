@@ -1,0 +1,129 @@
+"""Evaluation helpers shared by `reference_surface`, `mesh` and `evaluate`: restoring a trained
+model, meshing it, novel-view metrics on held-out views, and the COLMAP text export."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from manifoldneus import cameras, io, meshing, metrics
+from manifoldneus.config import param
+from manifoldneus.field import FieldParams
+from manifoldneus.losses import LossParams
+from manifoldneus.render import RenderParams
+from manifoldneus.train import Trainer, TrainParams, Views
+
+
+@dataclass
+class MeshParams:
+    """Section `meshing`: SDF -> triangle mesh."""
+
+    resolution: int = param(192, "Marching-cubes grid resolution over the unit sphere's cube", lo=16, hi=1024)
+    keep_components: int = param(1, "Keep this many largest connected components (0 = all)", lo=0)
+    cull_by_masks: bool = param(True, "Cull vertices outside the training views' dilated masks (when masks exist)")
+    cull_dilation: int = param(12, "Mask dilation (px at ingest resolution) for culling", lo=0)
+    preview_size: int = param(320, "Side of each of the 3 preview renderings (px)", lo=64)
+
+
+def trainer_from_checkpoint(path: Path, views: Views, device: str = "cpu") -> Trainer:
+    """Rebuild the trainer a ``model.pt`` was saved from (its params travel inside it) and load it."""
+    state = torch.load(str(path), map_location=device, weights_only=False)
+    prm = state["params"]
+    tp = dataclasses.replace(TrainParams(**prm["train"]), device=device, learn_poses=bool(prm["train"]["learn_poses"]))
+    t = Trainer(views, FieldParams(**prm["field"]), RenderParams(**prm["render"]), LossParams(**prm["loss"]), tp)
+    t.load_state_dict(state)
+    t.field.eval()
+    return t
+
+
+def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None):
+    """Mesh of the trainer's SDF; culled by the given views' dilated masks when asked."""
+    mesh = meshing.extract_mesh(trainer.sdf_fn(), p.resolution, trainer.rp.radius, p.keep_components)
+    if p.cull_by_masks and masks is not None:
+        mesh = meshing.cull_by_masks(mesh, K, w2c, masks, dilation=p.cull_dilation)
+        if p.keep_components > 0 and len(mesh.faces):
+            mesh = meshing.largest_components(mesh, p.keep_components)
+    return mesh
+
+
+def save_mesh_with_preview(mesh, out_dir: Path, p: MeshParams, stem: str = "mesh") -> None:
+    meshing.save_ply(mesh, out_dir / f"{stem}.ply")
+    if len(mesh.faces):
+        io.save_png(out_dir / f"{stem}_preview.png", meshing.render_preview(mesh, p.preview_size))
+
+
+def novel_views(trainer: Trainer, views: Views, ids, w2c: np.ndarray, out_dir: Path | None = None,
+                progress=None) -> dict:
+    """Render views ``ids`` at the trainer's resolution with poses ``w2c`` [N,4,4] (in the model's frame)
+    and score them: PSNR/SSIM unmasked and, when masks exist, with the background masked out.
+    Writes ``<name>.png`` (rendered | real) per view to ``out_dir``."""
+    small = views.resized(max(trainer.H, trainer.W))
+    rows = []
+    it = progress(ids, desc="novel views") if progress else ids
+    for i in it:
+        out = trainer.render_view(0, K=small.K[i], w2c=w2c[i], size=(trainer.H, trainer.W))
+        pred = np.clip(out["rgb"].reshape(trainer.H, trainer.W, 3), 0, 1)
+        real = small.float_images()[i]
+        row = {"view": int(i), "name": views.names[i], "psnr": metrics.psnr(pred, real), "ssim": metrics.ssim(pred, real)}
+        if small.masks is not None:
+            m = small.masks[i]
+            row["psnr_masked"] = metrics.psnr(pred * m[..., None], real * m[..., None])
+            row["psnr_fg"] = metrics.psnr(pred, real, m)
+            row["ssim_masked"] = metrics.ssim(pred * m[..., None], real * m[..., None])
+        lp = metrics.lpips(pred, real)
+        if lp is not None:
+            row["lpips"] = lp
+        rows.append(row)
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            io.save_png(out_dir / f"{views.names[i]}.png", np.concatenate([pred, real], 1))
+    summary = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k not in ("view", "name")} if rows else {}
+    ok, why = metrics.lpips_status()
+    summary["lpips_status"] = "on" if ok else why
+    summary["resolution"] = [trainer.H, trainer.W]
+    return {"summary": summary, "per_view": rows}
+
+
+def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None) -> None:
+    """COLMAP text model (PINHOLE camera per view, poses world-to-camera; no 3D points)."""
+    from scipy.spatial.transform import Rotation
+
+    folder.mkdir(parents=True, exist_ok=True)
+    valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
+    cams = ["# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
+    imgs = ["# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "# POINTS2D[] (empty)"]
+    for i, name in enumerate(names):
+        if not valid[i]:
+            continue
+        k = K[i]
+        cams.append(f"{i + 1} PINHOLE {width} {height} {k[0, 0]:.9g} {k[1, 1]:.9g} {k[0, 2]:.9g} {k[1, 2]:.9g}")
+        x, y, z, w = Rotation.from_matrix(w2c[i][:3, :3]).as_quat()
+        t = w2c[i][:3, 3]
+        imgs.append(f"{i + 1} {w:.12g} {x:.12g} {y:.12g} {z:.12g} {t[0]:.12g} {t[1]:.12g} {t[2]:.12g} {i + 1} {name}.png")
+        imgs.append("")
+    (folder / "cameras.txt").write_text("\n".join(cams) + "\n")
+    (folder / "images.txt").write_text("\n".join(imgs) + "\n")
+    (folder / "points3D.txt").write_text("# no points: poses only\n")
+
+
+def views_from_ingest(ingest_dir: Path, w2c: np.ndarray | None = None) -> Views:
+    arrays = io.load_arrays(ingest_dir / "views.zarr")
+    names = io.load_json(ingest_dir / "views.json")["names"]
+    n = len(names)
+    w2c = np.tile(np.eye(4), (n, 1, 1)) if w2c is None else w2c
+    return Views(arrays["images"], arrays["K"], w2c, arrays.get("masks"), arrays.get("mono_depth"),
+                 arrays.get("mono_normal"), names)
+
+
+def sim3_inverse(s: float, R: np.ndarray, t: np.ndarray):
+    """Inverse of y = s R x + t."""
+    return 1.0 / s, R.T, -R.T @ t / s
+
+
+def gt_in_model_frame(alignment: dict, w2c_gt: np.ndarray) -> np.ndarray:
+    """GT poses expressed in the estimated (model) frame, through the inverse of the est -> gt Sim3."""
+    s, R, t = sim3_inverse(alignment["s"], np.asarray(alignment["R"]), np.asarray(alignment["t"]))
+    return cameras.transform_w2c(w2c_gt, s, R, t)

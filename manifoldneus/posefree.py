@@ -1,0 +1,201 @@
+"""The pose-free rounds (METHOD.md stages 7-8): what the `anchors` and `successors` stages share.
+
+A round trains the field jointly with per-view se(3) corrections on a subset of views (the
+anchors, then everything scheduled so far), gated per view by the MaVOS coarse-to-fine gate.
+Each round carries the field (and background, SDF cache) over from the previous one and starts
+its pose corrections at zero on top of the poses the previous round ended with.
+
+A round's artifact (`save_round`): ``poses.zarr`` (``w2c`` [N,4,4] for all views, identity where
+``placed`` is False; ``w2c_init`` the poses the round started from; ``pose_trace`` [T,N,4,4] and
+``pose_grad_norm`` [T,N] sampled every ``log_every`` iterations, for the easy-view-bias analysis),
+``model.pt`` (the trainer state), ``round.json`` (views, initial-pose methods, losses, timings).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from manifoldneus import gate, io
+from manifoldneus.config import holdout_mask
+from manifoldneus.train import Trainer, Views
+
+
+@dataclasses.dataclass
+class SceneInputs:
+    """Everything a pose-free round reads (no ground truth)."""
+
+    views: Views  # all N views, w2c = identity placeholders
+    names: list
+    keypoints: list  # per view [K_v, 2] pixels
+    pairs: list  # pose_init.PairMatch, global ids
+    W: np.ndarray  # [N,N] co-visibility
+    schedule: dict  # arrays of the schedule stage + 'meta'
+    train_mask: np.ndarray  # bool [N]: scheduled and not held out
+
+
+def load_inputs(ctx) -> SceneInputs:
+    from manifoldneus.pose_init import pairs_from_matches
+    from stages.features import load_features
+    from stages.matching import load_matches
+    from stages.schedule import load_schedule
+
+    arrays = io.load_arrays(ctx.input("ingest") / "views.zarr")
+    meta = io.load_json(ctx.input("ingest") / "views.json")
+    n = len(meta["names"])
+    views = Views(arrays["images"], arrays["K"], np.tile(np.eye(4), (n, 1, 1)), arrays.get("masks"),
+                  arrays.get("mono_depth"), arrays.get("mono_normal"), meta["names"])
+    feats, _ = load_features(ctx.input("features") / "features.zarr")
+    matches, _ = load_matches(ctx.input("matching") / "matches.zarr")
+    W = io.load_arrays(ctx.input("covisibility") / "covisibility.zarr", ["W"])["W"].astype(np.float64)
+    schedule = load_schedule(ctx.input("schedule"))
+    train_mask = (schedule["round"] >= 0) & ~holdout_mask(n, ctx.section("split"))
+    return SceneInputs(views, meta["names"], [f["keypoints"] for f in feats], pairs_from_matches(matches), W,
+                       schedule, train_mask)
+
+
+def subset_views(views: Views, ids, w2c_all: np.ndarray) -> Views:
+    ids = np.asarray(ids, int)
+
+    def pick(a):
+        return None if a is None else a[ids]
+
+    return Views(views.images[ids], views.K[ids], w2c_all[ids], pick(views.masks), pick(views.mono_depth),
+                 pick(views.mono_normal), [views.names[i] for i in ids])
+
+
+def train_params(ctx, iters: int, pose_lr: float, pose_warmup_frac: float, learn_poses: bool):
+    """The `train` section adapted to one round: its length, the pose optimiser, the run's device."""
+    run = ctx.section("run")
+    tp = ctx.section("train")
+    return dataclasses.replace(tp, iters=iters, learn_poses=learn_poses, pose_lr=pose_lr,
+                               pose_warmup=int(round(pose_warmup_frac * iters)),
+                               warmup=min(tp.warmup, iters // 4), device=run.device, seed=run.seed,
+                               threads=run.threads)
+
+
+class Round:
+    """One optimisation round over ``ids`` (global view ids) starting from poses ``w2c_all``."""
+
+    def __init__(self, ctx, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
+                 pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None):
+        self.ids = np.asarray(ids, int)
+        self.iters = iters
+        self.full_K = inputs.views.K[self.ids]
+        tp = train_params(ctx, iters, pose_lr, pose_warmup_frac, learn_poses)
+        gate_p = ctx.section("gate")
+        s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids])
+        self.trainer = Trainer(
+            subset_views(inputs.views, self.ids, w2c_all), ctx.section("field"), ctx.section("render"),
+            ctx.section("loss"), tp,
+            band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,
+                                                                gate_p),
+        )
+        if carry is not None:  # the field learned so far; poses restart at zero correction
+            t = self.trainer
+            t.field.load_state_dict(carry["field"])
+            t.background.load_state_dict(carry["background"])
+            if t.cache is not None and carry.get("cache") is not None:
+                t.cache.load_state_dict(carry["cache"])
+        self.w2c_init = np.array(w2c_all)
+        self.pose_trace: list[np.ndarray] = []
+        self.grad_trace: list[np.ndarray] = []
+
+    def _record(self, trainer: Trainer, info: dict) -> None:
+        g = trainer.xi.grad
+        norms = np.zeros(len(self.ids)) if g is None else g.detach().norm(dim=-1).cpu().numpy()
+        self.grad_trace.append(norms)
+        self.pose_trace.append(trainer.poses_numpy())
+
+    def run(self, ctx, desc: str, checkpoint: Path | None = None) -> dict:
+        t = self.trainer
+        t.checkpoint_path = checkpoint
+        if checkpoint is not None and checkpoint.exists():
+            t.load(checkpoint)
+            ctx.log.info("%s: resumed from %s at step %d", desc, checkpoint.name, t.step)
+        bar = ctx.progress(total=self.iters, desc=desc, initial=t.step)
+
+        def callback(trainer, info):
+            bar.update(info["step"] - bar.n)
+            bar.set_postfix(loss=f"{info['loss']:.4f}")
+            self._record(trainer, info)
+
+        started = time.time()
+        summary = t.train(callback=callback)
+        bar.close()
+        summary["seconds"] = time.time() - started
+        return summary
+
+    def poses_all(self) -> np.ndarray:
+        out = np.array(self.w2c_init)
+        out[self.ids] = self.trainer.poses_numpy()
+        return out
+
+    def carry(self) -> dict:
+        s = self.trainer.state_dict()
+        return {k: s[k] for k in ("field", "background", "cache")}
+
+
+def depth_at_fn(rnd: Round):
+    """depth_at(view, uv [P,2]) -> distance along the ray [P] (NaN where the ray hits nothing),
+    rendered from the round's current field and poses; for PnP placement of successors."""
+    from manifoldneus.rays import camera_rays
+    from manifoldneus.render import render_rays
+
+    t = rnd.trainer
+    local = {int(g): i for i, g in enumerate(rnd.ids)}
+    poses = t.poses().detach()
+
+    def depth_at(view: int, uv: np.ndarray) -> np.ndarray:
+        i = local[int(view)]
+        uv_t = torch.as_tensor(np.asarray(uv, np.float32), device=t.device)
+        # the trainer's K is at its training resolution; keypoints are in full-resolution pixels
+        K_full = torch.as_tensor(rnd.full_K[i], dtype=torch.float32, device=t.device)
+        cols, rows = torch.floor(uv_t[:, 0]), torch.floor(uv_t[:, 1])
+        o, d = camera_rays(cols, rows, K_full, poses[i], jitter=uv_t - torch.stack([cols, rows], -1))
+        depths = []
+        with torch.no_grad():
+            for a in range(0, len(o), 4096):
+                out = render_rays(t.field, o[a:a + 4096], d[a:a + 4096], t.rp, cache=t.cache, background=t.background,
+                                  want_normals=False)
+                op = out["opacity"]
+                dep = out["depth"] / op.clamp_min(1e-4)
+                depths.append(torch.where(op > 0.5, dep, torch.full_like(dep, float("nan"))))
+        return torch.cat(depths).cpu().numpy() if depths else np.zeros(0)
+
+    return depth_at
+
+
+def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    n_views = len(placed)
+    w2c = rnd.poses_all()
+    w2c[~placed] = np.eye(4)
+    trace = np.tile(np.eye(4), (len(rnd.pose_trace), n_views, 1, 1))
+    grads = np.zeros((len(rnd.grad_trace), n_views))
+    for k, (P, g) in enumerate(zip(rnd.pose_trace, rnd.grad_trace)):
+        trace[k, rnd.ids] = P
+        grads[k, rnd.ids] = g
+    io.save_arrays(out_dir / "poses.zarr", {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed,
+                                            "optimised": np.isin(np.arange(n_views), rnd.ids),
+                                            "pose_trace": trace, "pose_grad_norm": grads}, chunk_first=False)
+    rnd.trainer.save(out_dir / "model.pt")
+    (out_dir / "round.json").write_text(json.dumps(info, indent=2, default=_jsonable) + "\n")
+
+
+def _jsonable(o):
+    if isinstance(o, (np.integer, np.floating, np.bool_)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def load_round(round_dir: Path) -> dict:
+    out = io.load_arrays(round_dir / "poses.zarr")
+    out["info"] = io.load_json(round_dir / "round.json")
+    return out

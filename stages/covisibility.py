@@ -1,0 +1,206 @@
+"""covisibility: the co-visibility graph of the views.
+
+``W[i, j] = n_ij``, the number of verified inlier matches of pair (i, j) (symmetric, zero
+diagonal); pairs below ``min_inliers`` get ``n_ij := 0``. ``c_i = sum_j W_ij`` is the cumulative
+count. Connected components of the graph W > 0 (``scipy.sparse.csgraph``), largest first.
+
+Outputs:
+
+- ``covisibility.zarr``: ``W`` float64 [N,N], ``c`` float64 [N], ``component`` int32 [N]
+  (label of each view's component, 0 = the largest), ``in_largest`` bool [N].
+- ``components.json``: ``{"n_components", "components": [[view indices], ...] (largest first,
+  each sorted), "component_names": [[view names], ...], "largest": [names], "outside_largest":
+  [names], "isolated": [names of views with no edge]}``.
+- ``covisibility.png`` (heat map of W) and ``graph.png`` (views on a circle or at their
+  spectral coordinates, edge width ~ n_ij).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from manifoldneus.config import param
+from manifoldneus.io import load_arrays, load_attrs, save_arrays, save_figure, save_json
+
+
+@dataclass
+class Params:
+    """Section `covisibility` of params.yaml."""
+
+    min_inliers: int = param(15, "Pairs with fewer verified inliers get n_ij = 0 (0 keeps every pair)", lo=0)
+    layout: str = param("spectral", "Node layout of graph.png", choices=["spectral", "circle"])
+
+
+UPSTREAM = ("matching",)
+SECTIONS = ("covisibility",)
+OUTPUTS = ("covisibility.zarr", "components.json", "covisibility.png", "graph.png")
+
+
+# --------------------------------------------------------------------------- plain functions
+
+
+def build_W(n_views: int, pairs: np.ndarray, counts: np.ndarray, min_inliers: int = 0) -> np.ndarray:
+    """Symmetric [N,N] float64 matrix of inlier counts with a zero diagonal."""
+    W = np.zeros((n_views, n_views))
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    counts = np.asarray(counts, np.float64).reshape(-1)
+    keep = (counts >= max(min_inliers, 1)) & (pairs[:, 0] != pairs[:, 1])
+    i, j, c = pairs[keep, 0], pairs[keep, 1], counts[keep]
+    # a pair listed twice (i,j) and (j,i) keeps the larger count
+    np.maximum.at(W, (i, j), c)
+    np.maximum.at(W, (j, i), c)
+    np.fill_diagonal(W, 0.0)
+    return W
+
+
+def components(W: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of the graph W > 0. Returns (count, labels [N]) with labels ordered
+    by decreasing component size (0 = largest; ties broken by the smallest view index)."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n, labels = connected_components(csr_matrix(np.asarray(W) > 0), directed=False)
+    sizes = np.bincount(labels, minlength=n)
+    first = np.array([np.flatnonzero(labels == k)[0] for k in range(n)])
+    order = sorted(range(n), key=lambda k: (-sizes[k], first[k]))
+    remap = np.empty(n, np.int32)
+    remap[order] = np.arange(n)
+    return int(n), remap[labels]
+
+
+def spectral_layout(W: np.ndarray) -> np.ndarray:
+    """2-D node positions: the 2 smallest non-trivial eigenvectors of the normalised Laplacian
+    (per component; components side by side). Falls back to a circle for tiny components."""
+    n = len(W)
+    pos = circle_layout(n)
+    _, labels = components(W)
+    x_off = 0.0
+    for k in range(labels.max() + 1 if n else 0):
+        idx = np.flatnonzero(labels == k)
+        if len(idx) >= 4:
+            Wk = W[np.ix_(idx, idx)]
+            d = Wk.sum(1)
+            dm = 1.0 / np.sqrt(np.maximum(d, 1e-12))
+            L = np.eye(len(idx)) - dm[:, None] * Wk * dm[None, :]
+            _, vec = np.linalg.eigh(L)
+            p = vec[:, 1:3] * dm[:, None]
+            p = p - p.mean(0)
+            p = p / max(np.abs(p).max(), 1e-12)
+        else:
+            p = circle_layout(len(idx)) * (0.3 if len(idx) > 1 else 0.0)
+        pos[idx] = p + np.array([x_off, 0.0])
+        x_off += 2.5
+    return pos
+
+
+def circle_layout(n: int) -> np.ndarray:
+    a = 2 * np.pi * np.arange(n) / max(n, 1)
+    return np.stack([np.cos(a), np.sin(a)], 1)
+
+
+def plot_heatmap(W: np.ndarray, names: list[str], title: str = ""):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(W)
+    fig, ax = plt.subplots(figsize=(7, 6))
+    im = ax.imshow(W, cmap="viridis", interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="verified inliers n_ij")
+    step = max(1, n // 25)
+    ticks = np.arange(0, n, step)
+    ax.set_xticks(ticks)
+    ax.set_yticks(ticks)
+    ax.set_xticklabels([names[t] for t in ticks], rotation=90, fontsize=6)
+    ax.set_yticklabels([names[t] for t in ticks], fontsize=6)
+    ax.set_title(title or "co-visibility W")
+    return fig
+
+
+def plot_graph(W: np.ndarray, names: list[str], pos: np.ndarray, labels: np.ndarray, title: str = ""):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    n = len(W)
+    fig, ax = plt.subplots(figsize=(7, 7))
+    iu, ju = np.nonzero(np.triu(W, 1))
+    if len(iu):
+        w = W[iu, ju]
+        segs = np.stack([pos[iu], pos[ju]], 1)
+        lw = 0.2 + 4.0 * w / w.max()
+        lc = LineCollection(segs, linewidths=lw, colors="tab:blue", alpha=0.35)
+        ax.add_collection(lc)
+    c = W.sum(1)
+    size = 30 + 170 * (c / c.max() if c.max() > 0 else np.zeros(n))
+    colors = np.where(labels == 0, "tab:orange", "tab:red")
+    ax.scatter(pos[:, 0], pos[:, 1], s=size, c=colors, zorder=3, edgecolors="k", linewidths=0.5)
+    for v in range(n):
+        ax.annotate(names[v], pos[v], fontsize=6, ha="center", va="center", zorder=4)
+    ax.set_aspect("equal")
+    ax.autoscale()
+    ax.axis("off")
+    ax.set_title(title or "co-visibility graph (edge width ~ n_ij; red = outside the largest component)")
+    return fig
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def run(ctx) -> None:
+    p: Params = ctx.params
+    mpath = Path(ctx.input("matching")) / "matches.zarr"
+    arrays = load_arrays(mpath, ["pairs", "n_inliers"])
+    attrs = load_attrs(mpath)
+    names = list(attrs["names"])
+    n = len(names)
+
+    W = build_W(n, arrays["pairs"], arrays["n_inliers"], p.min_inliers)
+    c = W.sum(1)
+    n_comp, labels = components(W)
+    comp_idx = [np.flatnonzero(labels == k).tolist() for k in range(n_comp)]
+    comps = [[names[v] for v in idx] for idx in comp_idx]
+    outside = [names[v] for v in range(n) if labels[v] != 0]
+    isolated = [names[v] for v in range(n) if c[v] == 0]
+
+    save_arrays(
+        Path(ctx.out) / "covisibility.zarr",
+        {"W": W, "c": c, "component": labels.astype(np.int32), "in_largest": labels == 0},
+        attrs={"names": names, "min_inliers": p.min_inliers},
+        chunk_first=False,
+    )
+    save_json(
+        Path(ctx.out) / "components.json",
+        {
+            "n_components": n_comp,
+            "components": comp_idx,
+            "component_names": comps,
+            "largest": comps[0] if comps else [],
+            "outside_largest": outside,
+            "isolated": isolated,
+        },
+    )
+    save_figure(Path(ctx.out) / "covisibility.png", plot_heatmap(W, names, f"{ctx.scene}: co-visibility W (n_ij >= {p.min_inliers})"))
+    pos = spectral_layout(W) if p.layout == "spectral" else circle_layout(n)
+    save_figure(Path(ctx.out) / "graph.png", plot_graph(W, names, pos, labels, f"{ctx.scene}: co-visibility graph ({p.layout} layout)"))
+
+    if n_comp > 1:
+        ctx.log.warning(
+            f"the co-visibility graph is disconnected: {n_comp} components; {len(outside)} view(s) outside the "
+            f"largest component ({len(comps[0])} views): {', '.join(outside)}"
+        )
+    edges = int((np.triu(W, 1) > 0).sum())
+    ctx.log.info(f"{n} views, {edges} edges, {n_comp} component(s), c_i in [{c.min():.0f}, {c.max():.0f}]")
+    ctx.metrics["n_views"] = n
+    ctx.metrics["n_edges"] = edges
+    ctx.metrics["n_components"] = n_comp
+    ctx.metrics["largest_component_size"] = len(comps[0]) if comps else 0
+    ctx.metrics["outside_largest"] = ", ".join(outside)
+    ctx.metrics["c_min"] = float(c.min()) if n else 0.0
+    ctx.metrics["c_mean"] = float(c.mean()) if n else 0.0
+    ctx.metrics["c_max"] = float(c.max()) if n else 0.0

@@ -1,0 +1,141 @@
+"""evaluate: pose errors after every round (and of the initial poses), geometry, novel views.
+
+- Poses: Sim3 (Umeyama on camera centres) alignment to GT, rotation / centre errors, PRE_r/PRE_t
+  (:mod:`manifoldneus.pose_metrics`), for the initial anchor poses, the anchor round and every
+  successor round, over the views optimised in that round.
+- Geometry: Chamfer of the final mesh (mapped into the GT frame by the final Sim3) against the
+  exact surface (synthetic scenes: the observed part of it), or else against the mesh of the
+  GT-pose `reference_surface`, labelled so. Distances in scene units and in data units (mm).
+- Novel views: held-out views rendered from the final model with their GT poses mapped into
+  the model's frame through the inverse Sim3; PSNR/SSIM masked and unmasked.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from manifoldneus import evaluation, io, metrics, pose_metrics, posefree
+from manifoldneus.config import holdout_mask, param
+
+
+@dataclass
+class Params:
+    """Section `evaluate` of params.yaml."""
+
+    chamfer_points: int = param(100000, "Points sampled on each surface for Chamfer", lo=1000)
+    chamfer_max_dist: float = param(0.0, "Clip distances at this many scene units (0 = no clip)", lo=0.0)
+
+
+UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "mesh", "reference_surface")
+SECTIONS = ("evaluate", "run", "split")
+OUTPUTS = ("evaluation.json", "pose_error_rounds.png")
+
+
+def _rounds(ctx) -> list[tuple[str, dict]]:
+    out = [("initial", io.load_arrays(ctx.input("anchors") / "initial_poses.zarr"))]
+    out.append(("anchors", posefree.load_round(ctx.input("anchors") / "round_0")))
+    succ = ctx.input("successors")
+    for d in sorted(succ.glob("round_*"), key=lambda p: int(p.name.split("_")[1])):
+        out.append((d.name, posefree.load_round(d)))
+    return out
+
+
+def plot_rounds(rows: list[dict], path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    x = [r["label"] for r in rows]
+    for a, key, unit in ((ax[0], "rot_err_deg", "deg"), (ax[1], "center_err_units", "")):
+        a.plot(x, [r["summary"][key]["mean"] for r in rows], "o-", label="mean")
+        a.plot(x, [r["summary"][key]["median"] for r in rows], "s--", label="median")
+        a.set_yscale("log")
+        a.set_title(f"{key} {unit}")
+        a.legend()
+    fig.tight_layout()
+    io.save_figure(path, fig)
+
+
+def run(ctx) -> None:
+    p: Params = ctx.params
+    gt_meta = io.load_json(ctx.input("ground_truth") / "gt.json")
+    names = io.load_json(ctx.input("ingest") / "views.json")["names"]
+    report: dict = {"label": ctx.scene}
+    if not gt_meta["has_poses"]:
+        ctx.log.warning("no ground truth: nothing to evaluate against")
+        io.save_json(ctx.out / "evaluation.json", {"has_ground_truth": False})
+        io.save_png(ctx.out / "pose_error_rounds.png", np.zeros((8, 8, 3)))
+        return
+    gt = io.load_arrays(ctx.input("ground_truth") / "poses.zarr")
+    units = gt_meta["units_per_scene_unit"]
+    # --- poses per round
+    rows = []
+    for label, r in _rounds(ctx):
+        valid = r["placed"].astype(bool) & (r.get("optimised", r["placed"]).astype(bool))
+        res = pose_metrics.evaluate_poses(r["w2c"], gt["w2c"], valid=valid, units_scale=units)
+        rows.append({"label": label, "summary": res["summary"], "n_views": res["n_valid"],
+                     "per_view": pose_metrics.json_summary(res, names)["per_view"]})
+        ctx.log.info("%-9s %2d views: rotation %.3f deg, centre %.3f %s (mean)", label, res["n_valid"],
+                     res["summary"]["rot_err_deg"]["mean"], res["summary"]["center_err_units"]["mean"],
+                     gt_meta["units"])
+        final_res = res
+    report["poses"] = rows
+    plot_rounds(rows, ctx.out / "pose_error_rounds.png")
+    pose_metrics.plot_cameras(final_res["w2c_aligned"], gt["w2c"], ctx.out / "cameras.png", valid=final_res["valid"],
+                              title=f"{ctx.scene}: final poses (Sim3-aligned) vs GT")
+    # --- geometry
+    import trimesh
+
+    mesh = trimesh.load(ctx.input("mesh") / "mesh.ply", process=False)
+    al = final_res["alignment"]
+    pred = metrics.sample_surface(mesh, p.chamfer_points) if len(mesh.faces) else np.zeros((0, 3))
+    pred = al["s"] * pred @ np.asarray(al["R"]).T + np.asarray(al["t"])
+    ref_label, ref_pts = None, None
+    if gt_meta.get("has_surface"):
+        from manifoldneus import synthetic
+
+        surf = gt["surface_points"]
+        views = evaluation.views_from_ingest(ctx.input("ingest"))
+        h, w = views.images.shape[1:3]
+        ref_pts = surf[synthetic.points_visible(surf, views.K, gt["w2c"], h, w)]
+        ref_label = "exact surface (observed part)"
+        diag = float(np.linalg.norm(np.subtract(*synthetic.bounding_box()[::-1])))
+    else:
+        ref_meta = io.load_json(ctx.input("reference_surface") / "reference.json")
+        if ref_meta.get("trained"):
+            ref_mesh = trimesh.load(ctx.input("reference_surface") / "mesh.ply", process=False)
+            ref_pts = metrics.sample_surface(ref_mesh, p.chamfer_points)
+            ref_label = "mesh of the GT-pose reference_surface (not DTU's official point cloud)"
+            diag = float(np.linalg.norm(ref_pts.max(0) - ref_pts.min(0)))
+    if ref_pts is not None:
+        ch = metrics.chamfer(pred, ref_pts, p.chamfer_max_dist or None)
+        ch_units = {f"{k}_units": v * units for k, v in ch.items()}
+        report["geometry"] = {"reference": ref_label, **ch, **ch_units, "units": gt_meta["units"],
+                              "chamfer_pct_of_bbox_diagonal": 100 * ch["chamfer"] / diag}
+    # --- novel views of held-out views
+    held = np.flatnonzero(holdout_mask(len(names), ctx.section("split")))
+    final_dir = ctx.input("successors") / "final"
+    final = posefree.load_round(final_dir)
+    if len(held):
+        views = evaluation.views_from_ingest(ctx.input("ingest"), final["w2c"])
+        ids = np.flatnonzero(final["optimised"].astype(bool))
+        trainer = evaluation.trainer_from_checkpoint(final_dir / "model.pt", posefree.subset_views(views, ids, final["w2c"]),
+                                                     ctx.section("run").device)
+        test_w2c = evaluation.gt_in_model_frame(al, gt["w2c"])
+        report["novel_views"] = evaluation.novel_views(trainer, views, held, test_w2c, ctx.out / "novel_views",
+                                                       ctx.progress)
+    io.save_json(ctx.out / "evaluation.json", report)
+    fin = rows[-1]["summary"]
+    ctx.metrics.update(
+        rot_err_deg_mean=fin["rot_err_deg"]["mean"], center_err_units_mean=fin["center_err_units"]["mean"],
+        pre_r_deg_mean=fin["pre_r_deg"]["mean"], pre_t_deg_mean=fin["pre_t_deg"]["mean"],
+        anchors_rot_err_deg_mean=rows[1]["summary"]["rot_err_deg"]["mean"],
+        initial_rot_err_deg_mean=rows[0]["summary"]["rot_err_deg"]["mean"], units=gt_meta["units"])
+    if "geometry" in report:
+        ctx.metrics.update(chamfer_units=report["geometry"]["chamfer_units"],
+                           chamfer_pct_bbox=report["geometry"]["chamfer_pct_of_bbox_diagonal"])
+    if "novel_views" in report:
+        ctx.metrics.update({f"nvs_{k}": v for k, v in report["novel_views"]["summary"].items() if isinstance(v, float)})

@@ -1,0 +1,34 @@
+"""mesh: the final model's surface, and the export of the method's result.
+
+SDF on a grid inside the unit sphere -> marching cubes -> largest component(s) -> culled by the
+training views' dilated masks (when masks exist). Output frame: the normalised object frame the
+method built (anchors' points median-centred, robust radius `anchors.gauge_radius`); the mesh
+(``mesh.ply``) and the poses (``colmap/`` text model, ``poses.zarr``) are both in it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from manifoldneus import evaluation, io, posefree
+
+Params = evaluation.MeshParams
+UPSTREAM = ("ingest", "successors")
+SECTIONS = ("meshing", "run")
+OUTPUTS = ("mesh.ply", "poses.zarr", "colmap")
+
+
+def run(ctx) -> None:
+    final = ctx.input("successors") / "final"
+    result = posefree.load_round(final)
+    w2c, placed = result["w2c"], result["placed"].astype(bool)
+    views = evaluation.views_from_ingest(ctx.input("ingest"), w2c)
+    ids = np.flatnonzero(result["optimised"].astype(bool))
+    trainer = evaluation.trainer_from_checkpoint(final / "model.pt", posefree.subset_views(views, ids, w2c),
+                                                 ctx.section("run").device)
+    masks = None if views.masks is None else views.masks[ids]
+    mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks)
+    evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params)
+    io.save_arrays(ctx.out / "poses.zarr", {"w2c": w2c, "placed": placed}, chunk_first=False)
+    h, w = views.images.shape[1:3]
+    evaluation.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c, w, h, valid=placed)
+    ctx.metrics.update(faces=int(len(mesh.faces)), vertices=int(len(mesh.vertices)), views_exported=int(placed.sum()))

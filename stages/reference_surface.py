@@ -1,0 +1,73 @@
+"""reference_surface: REFERENCE, NOT THE METHOD. The neural surface trained with ground-truth
+poses (a GT reader by design). It gives the upper bound the pose-free rounds are compared to,
+and, on DTU (whose official point clouds are not here), the mesh that Chamfer is measured
+against, labelled as such. Held-out views (split.holdout_every) are scored for novel-view
+synthesis at the training resolution.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from manifoldneus import evaluation, io
+from manifoldneus.config import holdout_mask, param
+from manifoldneus.train import Trainer
+
+
+@dataclass
+class Params:
+    """Section `reference_surface` of params.yaml."""
+
+    enabled: bool = param(True, "Train the GT-pose reference (False: write a note and skip)")
+
+
+UPSTREAM = ("ingest", "ground_truth")
+SECTIONS = ("reference_surface", "train", "field", "render", "loss", "meshing", "run", "split")
+OUTPUTS = ("reference.json",)
+
+
+def run(ctx) -> None:
+    gt_meta = io.load_json(ctx.input("ground_truth") / "gt.json")
+    if not ctx.params.enabled or not gt_meta["has_poses"]:
+        why = "disabled" if not ctx.params.enabled else "the scene has no ground-truth poses"
+        ctx.log.info("no reference surface: %s", why)
+        io.save_json(ctx.out / "reference.json", {"trained": False, "why": why})
+        return
+    w2c = io.load_arrays(ctx.input("ground_truth") / "poses.zarr", ["w2c"])["w2c"]
+    views = evaluation.views_from_ingest(ctx.input("ingest"), w2c)
+    held = holdout_mask(len(views.names), ctx.section("split"))
+    run_p = ctx.section("run")
+    tp = dataclasses.replace(ctx.section("train"), learn_poses=False, device=run_p.device, seed=run_p.seed,
+                             threads=run_p.threads)
+    ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+    ckpt = ctx.checkpoint_dir / "model.pt"
+    trainer = Trainer(views, ctx.section("field"), ctx.section("render"), ctx.section("loss"), tp,
+                      train_views=np.flatnonzero(~held), checkpoint_path=ckpt)
+    if ckpt.exists():
+        trainer.load(ckpt)
+        ctx.log.info("resumed from its checkpoint at step %d", trainer.step)
+    bar = ctx.progress(total=tp.iters, desc="reference_surface", initial=trainer.step)
+    started = time.time()
+    summary = trainer.train(callback=lambda t, info: (bar.update(info["step"] - bar.n),
+                                                      bar.set_postfix(loss=f"{info['loss']:.4f}"))[-1])
+    bar.close()
+    seconds = time.time() - started
+    trainer.save(ctx.out / "model.pt")
+    mp = ctx.section("meshing")
+    train_ids = np.flatnonzero(~held)
+    masks = None if views.masks is None else views.masks[train_ids]
+    mesh = evaluation.make_mesh(trainer, mp, views.K[train_ids], w2c[train_ids], masks)
+    evaluation.save_mesh_with_preview(mesh, ctx.out, mp)
+    nvs = evaluation.novel_views(trainer, views, np.flatnonzero(held), w2c, ctx.out / "novel_views", ctx.progress)
+    rays = summary["steps"] * tp.batch_rays
+    io.save_json(ctx.out / "reference.json", {
+        "trained": True, "label": "reference: trained with GROUND-TRUTH poses", "train": summary,
+        "history": trainer.history, "novel_views": nvs, "train_seconds": seconds,
+        "rays_per_second": rays / max(seconds, 1e-9), "mesh_faces": int(len(mesh.faces))})
+    ctx.metrics.update(label="GT-pose reference", train_seconds=round(seconds, 1),
+                       rays_per_second=round(rays / max(seconds, 1e-9)), steps=summary["steps"],
+                       losses_on=sorted(k for k, v in summary["loss_status"].items() if v == "on"),
+                       **{f"nvs_{k}": v for k, v in nvs["summary"].items() if isinstance(v, float)})

@@ -1,0 +1,89 @@
+"""successors: the MaVOS successor rounds. Each round places its new views by PnP against depth
+rendered from the current model (fallback: the best-matching optimised neighbour's pose), then
+optimises all views scheduled so far jointly. One sub-artifact per round (``round_<r>/``); each
+round is also checkpointed, so an interrupted run resumes at the round (and iteration) it reached.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from manifoldneus import pose_init, posefree
+from manifoldneus.config import param
+
+
+@dataclass
+class Params:
+    """Section `successors` of params.yaml."""
+
+    iters: int = param(1000, "Iterations of each successor round", lo=1)
+    pose_lr: float = param(5e-3, "Peak AdamW lr of the pose corrections (supplement: 5e-3)", lo=0.0)
+    pose_warmup_frac: float = param(0.1, "Pose lr warm-up as a fraction of a round", lo=0.0, hi=1.0)
+    optimise_poses: bool = param(True, "Learn per-view pose corrections")
+    pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
+    pnp_min_inliers: int = param(12, "Fewer PnP inliers -> fallback to the best-matching optimised neighbour", lo=4)
+
+
+UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "anchors")
+SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "run", "split")
+OUTPUTS = ("final",)
+
+
+def run(ctx) -> None:
+    p: Params = ctx.params
+    inputs = posefree.load_inputs(ctx)
+    rounds = inputs.schedule["round"]
+    n_rounds = int(rounds.max()) if (rounds >= 0).any() else 0
+    prev_dir = ctx.input("anchors") / "round_0"
+    prev = posefree.load_round(prev_dir)
+    carry = {k: v for k, v in torch.load(prev_dir / "model.pt", map_location="cpu", weights_only=False).items()
+             if k in ("field", "background", "cache")}
+    w2c, placed = prev["w2c"], prev["placed"].astype(bool)
+    ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+    ctx.metrics["rounds"] = []
+    for r in range(1, n_rounds + 1):
+        new = [int(v) for v in np.flatnonzero((rounds == r) & inputs.train_mask)]
+        # place new views against depth rendered from the model of the previous round
+        probe = posefree.Round(ctx, inputs, np.flatnonzero(placed), w2c, np.ones(len(w2c)), iters=1, pose_lr=0.0,
+                               pose_warmup_frac=0.0, learn_poses=False, carry=carry)
+        depth_at = posefree.depth_at_fn(probe)
+        placed_poses = {int(v): w2c[v] for v in np.flatnonzero(placed)}
+        init = {}
+        for v in ctx.progress(new, desc=f"round {r}: PnP"):
+            pose, info = pose_init.place_successor(v, inputs.views.K, inputs.keypoints, inputs.pairs, placed_poses,
+                                                   inputs.W, depth_at=depth_at, ray_distance=True,
+                                                   reproj_px=p.pnp_reproj_px, min_inliers=p.pnp_min_inliers)
+            init[inputs.names[v]] = info
+            if pose is None:
+                ctx.log.warning("round %d: view %s cannot be placed (no optimised neighbour); left out of the round",
+                                r, inputs.names[v])
+                continue
+            if info["method"] == "fallback":
+                ctx.log.warning("round %d: PnP failed for %s (%d inliers); starting from neighbour %s's pose", r,
+                                inputs.names[v], info["n_inliers"], inputs.names[info["neighbour"]])
+            w2c[v] = pose
+            placed[v] = True
+        ids = np.flatnonzero(placed)
+        rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=p.iters,
+                             pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
+                             carry=carry)
+        summary = rnd.run(ctx, f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt")
+        posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
+            "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,
+            "history": rnd.trainer.history})
+        w2c = rnd.poses_all()
+        carry = rnd.carry()
+        methods = [i["method"] for i in init.values()]
+        ctx.metrics["rounds"].append({"round": r, "n_views": int(len(ids)), "new": len(new),
+                                      "pnp": methods.count("pnp"), "fallback": methods.count("fallback"),
+                                      "unplaced": methods.count("unplaced"), "seconds": summary["seconds"],
+                                      "final_loss": summary["final_loss"], "rollbacks": summary["rollbacks"]})
+    if n_rounds:
+        os.symlink(f"round_{n_rounds}", ctx.out / "final")  # relative: survives the version's rename
+    else:  # no successor rounds (e.g. the uniform schedule): the anchors' result is final
+        shutil.copytree(prev_dir, ctx.out / "final")
+    ctx.metrics["n_rounds"] = n_rounds
