@@ -218,7 +218,11 @@ def main():
         return
 
     fp, rp, lp, tp = build_params(args)
+    if args.budget_cpu:
+        tp.time_budget_s = args.budget_cpu
     tr = Trainer(views, fp, rp, lp, tp, train_views=train_ids)
+    if args.budget_cpu:
+        tr.clock = cpu_s  # budget and lr schedule in CPU seconds of this process
     evals = []
     pending = sorted(args.eval_at)
     train_time = [0.0]
@@ -242,7 +246,7 @@ def main():
             eval_time[0] += time.time() - t0
             eval_cpu[0] += cpu_s() - c0
             if trainer._t_start is not None:  # keep evaluations out of the lr schedule's clock
-                trainer._t_start += time.time() - t0
+                trainer._t_start += (cpu_s() - c0) if args.budget_cpu else (time.time() - t0)
             r.update(step=trainer.step, train_s=el, train_cpu_s=cel, loadavg=os.getloadavg()[0])
             evals.append(r)
             print(f"  eval @ {el:.0f}s step {trainer.step}: masked PSNR {r.get('psnr_masked', float('nan')):.2f} "
@@ -256,10 +260,13 @@ def main():
     # the budget counts training only; intermediate evaluations are excluded from it
     summary = {}
     while True:
-        remaining = args.budget - (time.time() - t_train0 - eval_time[0])
+        remaining = (args.budget_cpu - (cpu_s() - cpu0 - eval_cpu[0])) if args.budget_cpu else \
+            (args.budget - (time.time() - t_train0 - eval_time[0]))
         if remaining <= 0 or tr.step >= tp.iters or stop[0]:
             break
         summary = tr.train(time_budget_s=remaining, callback=cb)
+        if args.budget_cpu and stop[0]:
+            break
     train_s = time.time() - t_train0 - eval_time[0]
     train_cpu = cpu_s() - cpu0 - eval_cpu[0]
     final = evaluate(tr, test_ids, args.save_images)

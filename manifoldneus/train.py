@@ -234,6 +234,7 @@ class Trainer:
         self._loss_ema = None
         self._budget = 0.0
         self._t_start = None
+        self.clock = time.time  # budget / schedule clock (e.g. time.process_time for CPU-time budgets)
         self.history: list[dict] = []
         if self.masks is not None and self.tp.fg_ray_fraction > 0:
             tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
@@ -377,7 +378,7 @@ class Trainer:
         elapsed fraction of the budget corresponds to when that is further (so the cosine decay
         completes by the budget)."""
         if self._budget and self._t_start is not None:
-            frac = (time.time() - self._t_start) / self._budget
+            frac = (self.clock() - self._t_start) / self._budget
             return max(self.step, int(frac * self.tp.iters))
         return self.step
 
@@ -443,7 +444,8 @@ class Trainer:
         Returns a summary dict."""
         iters = self.tp.iters if iters is None else iters
         budget = self.tp.time_budget_s if time_budget_s is None else time_budget_s
-        t0 = time.time()
+        t0 = self.clock()
+        t_wall = time.time()
         if budget and self._t_start is None:
             # the schedule follows the budget (set once, so repeated train() calls keep it)
             self._budget, self._t_start = budget, t0
@@ -457,7 +459,7 @@ class Trainer:
             if self.step % self.tp.log_every == 0 or self.step == iters:
                 info = {"step": self.step, "loss": r["loss"], **{f"loss_{k}": v for k, v in r["terms"].items()},
                         "inv_s": float(self.field.inv_s().detach()), "lr": self.opt.param_groups[0]["lr"],
-                        "elapsed_s": time.time() - t0}
+                        "elapsed_s": self.clock() - t0}
                 self.history.append(info)
                 log.info("step %d loss %.4f %s s=%.1f (%.0f s)", self.step, r["loss"],
                          " ".join(f"{k}={v:.4f}" for k, v in r["terms"].items()), info["inv_s"], info["elapsed_s"])
@@ -465,11 +467,11 @@ class Trainer:
                     self.progress(self.step, info)
                 if callback is not None and callback(self, info):
                     break
-            if budget and time.time() - t0 > budget:
+            if budget and self.clock() - t0 > budget:
                 log.info("time budget %.0f s reached at step %d", budget, self.step)
                 break
         self.field.eval()
-        return {"steps": self.step, "seconds": time.time() - t0, "final_loss": last.get("loss"),
+        return {"steps": self.step, "seconds": time.time() - t_wall, "final_loss": last.get("loss"),
                 "loss_status": self.loss_status, "rollbacks": self.rollbacks, "events": list(self.events),
                 "background": self.bg_kind}
 

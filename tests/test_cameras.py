@@ -1,0 +1,72 @@
+"""Pose conventions and Lie algebra: se(3) round trips, composition, Sim3 transforms."""
+import numpy as np
+import torch
+
+from manifoldneus import cameras
+
+
+def random_xi(n, scale=1.0, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(n, 6, generator=g, dtype=torch.float64) - 0.5) * 2 * scale
+
+
+def test_se3_exp_log_roundtrip_including_tiny_angles():
+    for scale in (1e-9, 1e-4, 0.3, 1.5):
+        xi = random_xi(64, scale)
+        back = cameras.se3_log(cameras.se3_exp(xi))
+        torch.testing.assert_close(back, xi, atol=1e-9, rtol=1e-7)
+
+
+def test_se3_exp_is_a_rigid_motion_and_matches_matrix_exponential():
+    xi = random_xi(16, 0.8, seed=1)
+    T = cameras.se3_exp(xi)
+    R = T[:, :3, :3]
+    torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(16, 3, 3))
+    assert torch.allclose(torch.linalg.det(R), torch.ones(16, dtype=torch.float64))
+    # against the matrix exponential of the 4x4 twist
+    twist = torch.zeros(16, 4, 4, dtype=torch.float64)
+    twist[:, :3, :3] = cameras._skew(xi[:, 3:])
+    twist[:, :3, 3] = xi[:, :3]
+    torch.testing.assert_close(torch.linalg.matrix_exp(twist)[:, :3, :4], T, atol=1e-10, rtol=1e-9)
+
+
+def test_exp_gradient_at_zero_is_finite():
+    xi = torch.zeros(3, 6, dtype=torch.float64, requires_grad=True)
+    cameras.apply_correction(xi, torch.eye(4, dtype=torch.float64).expand(3, 4, 4)).sum().backward()
+    assert torch.isfinite(xi.grad).all() and xi.grad.abs().sum() > 0
+
+
+def test_compose_invert_and_correction():
+    a = cameras.se3_exp(random_xi(8, 0.7, seed=2))
+    b = cameras.se3_exp(random_xi(8, 0.7, seed=3))
+    eye = torch.eye(4, dtype=torch.float64)[:3].expand(8, 3, 4)
+    torch.testing.assert_close(cameras.compose(a, cameras.invert(a)), eye, atol=1e-12, rtol=0)
+    xi = random_xi(8, 0.2, seed=4)
+    torch.testing.assert_close(cameras.apply_correction(xi, b), cameras.compose(cameras.se3_exp(xi), b))
+
+
+def test_numpy_inverse_centres_and_sim3_transform():
+    rng = np.random.default_rng(0)
+    w2c = cameras.se3_exp(random_xi(5, 1.0, seed=5)).numpy()
+    c2w = cameras.invert_pose(w2c)
+    np.testing.assert_allclose(cameras.invert_pose(c2w)[:, :3], w2c, atol=1e-12)
+    np.testing.assert_allclose(c2w[:, :3, 3], cameras.camera_centers(w2c), atol=1e-12)
+    # a similarity of the world keeps projections: x_cam_new ~ s * x_cam
+    s, R, t = 2.5, cameras.se3_exp(random_xi(1, 1.0, seed=6))[0, :3, :3].numpy(), rng.normal(size=3)
+    X = rng.normal(size=(10, 3))
+    new = cameras.transform_w2c(w2c, s, R, t)
+    Y = s * X @ R.T + t
+    for k in range(5):
+        xc = X @ w2c[k, :3, :3].T + w2c[k, :3, 3]
+        yc = Y @ new[k, :3, :3].T + new[k, :3, 3]
+        np.testing.assert_allclose(yc, s * xc, atol=1e-9)
+    s2, R2, t2 = cameras.umeyama_sim3(cameras.camera_centers(w2c), cameras.camera_centers(new))
+    assert abs(s2 - s) < 1e-9 and np.allclose(R2, R, atol=1e-9) and np.allclose(t2, t, atol=1e-9)
+
+
+def test_decompose_projection_roundtrip():
+    K = np.array([[900.0, 0, 190], [0, 905, 200], [0, 0, 1]])
+    w2c = cameras.to_4x4(cameras.se3_exp(random_xi(1, 1.0, seed=7)).numpy()[0])
+    K2, w2c2 = cameras.decompose_projection(K @ w2c[:3])
+    np.testing.assert_allclose(K2, K, atol=1e-8)
+    np.testing.assert_allclose(w2c2, w2c, atol=1e-9)
