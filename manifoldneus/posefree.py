@@ -82,7 +82,8 @@ class Round:
     """One optimisation round over ``ids`` (global view ids) starting from poses ``w2c_all``."""
 
     def __init__(self, ctx, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
-                 pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None):
+                 pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
+                 pose_start_frac: float = 0.0):
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.full_K = inputs.views.K[self.ids]
@@ -102,6 +103,12 @@ class Round:
             if t.cache is not None and carry.get("cache") is not None:
                 t.cache.load_state_dict(carry["cache"])
         self.w2c_init = np.array(w2c_all)
+        # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
+        # correction driven by an unfitted field only moves good initial poses away.
+        self.pose_start = int(round(pose_start_frac * iters))
+        self._pose_mask = self.trainer.pose_mask.clone()
+        if self.pose_start > 0:
+            self.trainer.pose_mask.zero_()
         self.pose_trace: list[np.ndarray] = []
         self.grad_trace: list[np.ndarray] = []
 
@@ -117,9 +124,13 @@ class Round:
         if checkpoint is not None and checkpoint.exists():
             t.load(checkpoint)
             ctx.log.info("%s: resumed from %s at step %d", desc, checkpoint.name, t.step)
+        if t.step >= self.pose_start:
+            t.pose_mask.copy_(self._pose_mask)
         bar = ctx.progress(total=self.iters, desc=desc, initial=t.step)
 
         def callback(trainer, info):
+            if info["step"] >= self.pose_start:
+                trainer.pose_mask.copy_(self._pose_mask)
             bar.update(info["step"] - bar.n)
             bar.set_postfix(loss=f"{info['loss']:.4f}")
             self._record(trainer, info)

@@ -27,6 +27,8 @@ class Params:
     optimise_poses: bool = param(True, "Learn per-view pose corrections (False: keep the initial poses)")
     iters: int = param(1500, "Iterations of the anchor stage", lo=1)
     pose_lr: float = param(8e-3, "Peak AdamW lr of the anchors' pose corrections (supplement: 8e-3)", lo=0.0)
+    pose_start_frac: float = param(0.3, "Poses stay frozen for this fraction of the iterations (the field fits first)",
+                                   lo=0.0, hi=1.0)
     pose_warmup_frac: float = param(0.1, "Pose lr warm-up as a fraction of the stage (supplement: 2k iterations)",
                                     lo=0.0, hi=1.0)
     reproj_px: float = param(3.0, "matches init: inlier reprojection threshold (px)", lo=0.1)
@@ -102,7 +104,8 @@ def run(ctx) -> None:
     s_tilde = inputs.schedule["s_tilde_rounds"][0]
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     rnd = posefree.Round(ctx, inputs, anchors, w2c0, s_tilde, iters=p.iters, pose_lr=p.pose_lr,
-                         pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses)
+                         pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
+                         pose_start_frac=p.pose_start_frac)
     summary = rnd.run(ctx, "anchors", ctx.checkpoint_dir / "round_0.pt")
     posefree.save_round(ctx.out / "round_0", rnd, placed, {
         "round": 0, "views": anchors, "names": [inputs.names[a] for a in anchors], "init": init_info,

@@ -22,6 +22,8 @@ class Params:
 
     iters: int = param(1000, "Iterations of each successor round", lo=1)
     pose_lr: float = param(5e-3, "Peak AdamW lr of the pose corrections (supplement: 5e-3)", lo=0.0)
+    pose_start_frac: float = param(0.2, "Poses stay frozen for this fraction of the iterations (the field fits first)",
+                                   lo=0.0, hi=1.0)
     pose_warmup_frac: float = param(0.1, "Pose lr warm-up as a fraction of a round", lo=0.0, hi=1.0)
     optimise_poses: bool = param(True, "Learn per-view pose corrections")
     pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
@@ -70,7 +72,7 @@ def run(ctx) -> None:
         ids = np.flatnonzero(placed)
         rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=p.iters,
                              pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
-                             carry=carry)
+                             carry=carry, pose_start_frac=p.pose_start_frac)
         summary = rnd.run(ctx, f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt")
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,
