@@ -26,6 +26,9 @@ class Params:
                                    lo=0.0, hi=1.0)
     pose_warmup_frac: float = param(0.1, "Pose lr warm-up as a fraction of a round", lo=0.0, hi=1.0)
     optimise_poses: bool = param(True, "Learn per-view pose corrections")
+    placement: str = param("depth", "Initial pose of a new view: 'depth' (PnP on matches lifted with depth rendered "
+                           "from the model, METHOD.md) or 'matches' (incremental SfM on the verified matches of all "
+                           "views so far, Sim3-aligned to the optimised poses)", choices=["depth", "matches"])
     pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
     pnp_min_inliers: int = param(12, "Fewer PnP inliers -> fallback to the best-matching optimised neighbour", lo=4)
 
@@ -33,6 +36,22 @@ class Params:
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "anchors")
 SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "run", "split")
 OUTPUTS = ("final",)
+
+
+def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: float) -> dict:
+    """Poses of ``new_ids`` from an incremental SfM over placed + new views (verified matches only),
+    brought into the model's frame by the Sim3 that maps its placed views onto their optimised poses."""
+    from manifoldneus import cameras
+
+    ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
+    res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, reproj_px=reproj_px)
+    row = {v: k for k, v in enumerate(ids)}
+    ok = [v for v in placed_ids if res.placed[row[v]]]
+    if len(ok) < 3:
+        return {}
+    s, R, t = cameras.umeyama_sim3(cameras.camera_centers(res.w2c[[row[v] for v in ok]]), cameras.camera_centers(w2c[ok]))
+    moved = cameras.transform_w2c(res.w2c, s, R, t)
+    return {v: moved[row[v]] for v in new_ids if res.placed[row[v]]}
 
 
 def run(ctx) -> None:
@@ -49,16 +68,25 @@ def run(ctx) -> None:
     ctx.metrics["rounds"] = []
     for r in range(1, n_rounds + 1):
         new = [int(v) for v in np.flatnonzero((rounds == r) & inputs.train_mask)]
-        # place new views against depth rendered from the model of the previous round
-        probe = posefree.Round(ctx, inputs, np.flatnonzero(placed), w2c, np.ones(len(w2c)), iters=1, pose_lr=0.0,
-                               pose_warmup_frac=0.0, learn_poses=False, carry=carry)
-        depth_at = posefree.depth_at_fn(probe)
+        # initial poses of the new views (depth PnP against the previous round's model, or the matches)
+        if p.placement == "depth":
+            probe = posefree.Round(ctx, inputs, np.flatnonzero(placed), w2c, np.ones(len(w2c)), iters=1, pose_lr=0.0,
+                                   pose_warmup_frac=0.0, learn_poses=False, carry=carry)
+            depth_at = posefree.depth_at_fn(probe)
         placed_poses = {int(v): w2c[v] for v in np.flatnonzero(placed)}
         init = {}
-        for v in ctx.progress(new, desc=f"round {r}: PnP"):
-            pose, info = pose_init.place_successor(v, inputs.views.K, inputs.keypoints, inputs.pairs, placed_poses,
-                                                   inputs.W, depth_at=depth_at, ray_distance=True,
-                                                   reproj_px=p.pnp_reproj_px, min_inliers=p.pnp_min_inliers)
+        from_matches = None
+        for v in ctx.progress(new, desc=f"round {r}: placing"):
+            pose, info = None, {"method": "unplaced"}
+            if p.placement == "depth":
+                pose, info = pose_init.place_successor(v, inputs.views.K, inputs.keypoints, inputs.pairs,
+                                                       placed_poses, inputs.W, depth_at=depth_at, ray_distance=True,
+                                                       reproj_px=p.pnp_reproj_px, min_inliers=p.pnp_min_inliers)
+            if p.placement == "matches" or info["method"] != "pnp":
+                if from_matches is None:
+                    from_matches = matches_placement(inputs, np.flatnonzero(placed), new, w2c, p.pnp_reproj_px)
+                if from_matches.get(v) is not None:
+                    pose, info = from_matches[v], {"method": "matches", "after": info["method"] if p.placement == "depth" else None}
             init[inputs.names[v]] = info
             if pose is None:
                 ctx.log.warning("round %d: view %s cannot be placed (no optimised neighbour); left out of the round",
@@ -67,6 +95,9 @@ def run(ctx) -> None:
             if info["method"] == "fallback":
                 ctx.log.warning("round %d: PnP failed for %s (%d inliers); starting from neighbour %s's pose", r,
                                 inputs.names[v], info["n_inliers"], inputs.names[info["neighbour"]])
+            elif info["method"] == "matches" and info.get("after"):
+                ctx.log.info("round %d: depth PnP gave %s for %s; placed from the matches instead", r, info["after"],
+                             inputs.names[v])
             w2c[v] = pose
             placed[v] = True
         ids = np.flatnonzero(placed)
@@ -81,7 +112,8 @@ def run(ctx) -> None:
         carry = rnd.carry()
         methods = [i["method"] for i in init.values()]
         ctx.metrics["rounds"].append({"round": r, "n_views": int(len(ids)), "new": len(new),
-                                      "pnp": methods.count("pnp"), "fallback": methods.count("fallback"),
+                                      "pnp": methods.count("pnp"), "matches": methods.count("matches"),
+                                      "fallback": methods.count("fallback"),
                                       "unplaced": methods.count("unplaced"), "seconds": summary["seconds"],
                                       "final_loss": summary["final_loss"], "rollbacks": summary["rollbacks"]})
     if n_rounds:
