@@ -59,6 +59,11 @@ def _coerce(key: str, value: Any, typ) -> Any:
             raise ParamError(f"{key}: expected an integer, got {value!r}")
         return value
     if typ is float:
+        if isinstance(value, str):  # YAML 1.1 reads 5e-4 (no dot) as a string
+            try:
+                return float(value)
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ParamError(f"{key}: expected a number, got {value!r}")
         return float(value)

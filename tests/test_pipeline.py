@@ -199,3 +199,11 @@ def test_presets_keep_their_own_current_pointers(tmp_path, artifacts):
     assert pipeline.status("synthetic", **{k: v for k, v in kw.items() if k != "until"})["ingest"][0] == "fresh"
     with pytest.raises(ParamError, match="unknown preset 'big'"):
         pipeline.run("synthetic", preset="big", **kw)
+
+
+def test_exponent_floats_without_a_dot_are_numbers():
+    stages = pipeline.load_stages()
+    resolved = pipeline.resolve_params(stages, overrides=["anchors.pose_lr=5e-4"])
+    assert resolved["anchors"].pose_lr == 5e-4
+    with pytest.raises(ParamError, match="anchors.pose_lr: expected a number"):
+        pipeline.resolve_params(stages, overrides=["anchors.pose_lr=fast"])
