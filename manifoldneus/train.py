@@ -426,9 +426,12 @@ class Trainer:
         if self.pose_opt is not None:
             self.pose_opt.zero_grad(set_to_none=True)
         total.backward()
-        bad = [n for n, p in self.field.named_parameters() if p.grad is not None and not torch.isfinite(p.grad).all()]
-        if bad:
-            self._rollback(f"non-finite gradient in {bad[0]}")
+        # one reduction per tensor: a NaN / inf anywhere makes its sum non-finite
+        grads = [p.grad for p in self.field.parameters() if p.grad is not None]
+        if grads and not bool(torch.isfinite(torch.stack([g.sum() for g in grads])).all()):
+            bad = next(n for n, p in self.field.named_parameters()
+                       if p.grad is not None and not torch.isfinite(p.grad).all())
+            self._rollback(f"non-finite gradient in {bad}")
             return {"rollback": True}
         self.opt.step()
         if self.pose_opt is not None:

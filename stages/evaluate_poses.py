@@ -68,6 +68,14 @@ def evaluate_pose_artifact(est_dir, gt_dir, out_dir, label: str, names=None, wit
     if len(w2c_est) != len(w2c_gt):
         raise ValueError(f"{label}: {len(w2c_est)} estimated poses for {len(w2c_gt)} ground-truth views")
     valid = est.get("registered")
+    n_valid = int(len(w2c_est) if valid is None else np.asarray(valid, bool).sum())
+    if n_valid < 3:  # a Sim3 needs three centres: report the failure instead of failing the stage
+        out = {"label": label, "evaluated": False, "n_valid": n_valid, "n_views": int(len(w2c_est)),
+               "reason": f"only {n_valid} registered view(s); at least 3 are needed for a Sim3 alignment"}
+        io.save_json(json_path, out)
+        if log:
+            log.warning("%s: %s", label, out["reason"])
+        return out
     scale, units = _units_scale(gt_dir, gt["normalization"])
     res = evaluate_poses(w2c_est, w2c_gt, valid=valid, units_scale=scale, with_scale=with_scale)
     out = {"label": label, "evaluated": True, "units": units, "gt_frame": "object-normalised (unit sphere)",

@@ -129,3 +129,20 @@ def test_too_few_views():
         evaluate_poses(gt, gt, valid=[True, True, False, False])
     with pytest.raises(ValueError, match="must both be"):
         evaluate_poses(gt[:3], gt)
+
+
+def test_reference_with_too_few_registered_views_is_reported_not_fatal(tmp_path):
+    from manifoldneus import io
+    from stages.evaluate_poses import evaluate_pose_artifact
+
+    gt_dir, est_dir = tmp_path / "gt", tmp_path / "est"
+    gt_dir.mkdir()
+    est_dir.mkdir()
+    io.save_arrays(gt_dir / "poses.zarr", {"w2c": np.tile(np.eye(4), (5, 1, 1)), "normalization": np.eye(4)},
+                   chunk_first=False)
+    io.save_json(gt_dir / "gt.json", {"has_poses": True, "units": "unit", "units_per_scene_unit": 1.0})
+    registered = np.array([True, True, False, False, False])
+    io.save_arrays(est_dir / "poses.zarr", {"w2c": np.tile(np.eye(4), (5, 1, 1)), "registered": registered},
+                   chunk_first=False)
+    out = evaluate_pose_artifact(est_dir, gt_dir, tmp_path, "reference")
+    assert out["evaluated"] is False and "only 2 registered" in out["reason"]
