@@ -340,12 +340,14 @@ def _library_versions() -> dict:
 
 
 def _stage_logger(stage: str, path: Path) -> tuple[logging.Logger, logging.Handler]:
-    log = logging.getLogger(f"manifoldneus.{stage}")
-    log.setLevel(logging.INFO)
+    """The stage's logger; the file handler sits on the package logger, so messages of the
+    `manifoldneus.*` modules a stage calls (training progress, rollbacks) land in log.txt too."""
+    package = logging.getLogger("manifoldneus")
+    package.setLevel(logging.INFO)
     handler = logging.FileHandler(path)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
-    log.addHandler(handler)
-    return log, handler
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    package.addHandler(handler)
+    return logging.getLogger(f"manifoldneus.{stage}"), handler
 
 
 def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Path:
@@ -389,13 +391,13 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
     except BaseException:
         log.exception("stage %s failed; nothing was published", stage.name)
         handler.close()
-        log.removeHandler(handler)
+        logging.getLogger("manifoldneus").removeHandler(handler)
         failed = store.stage_dir(stage.name) / f".failed-{fp}"
         shutil.rmtree(failed, ignore_errors=True)
         tmp.rename(failed)  # kept for its log.txt; never looks complete (no rename to the fingerprint)
         raise
     handler.close()
-    log.removeHandler(handler)
+    logging.getLogger("manifoldneus").removeHandler(handler)
     if final.exists():  # an older incomplete or forced-over version
         shutil.rmtree(final)
     tmp.rename(final)
