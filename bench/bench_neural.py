@@ -95,7 +95,7 @@ def evaluate(tr: Trainer, test_ids, save_dir: Path | None = None) -> dict:
     ps, pm, ss, sm = [], [], [], []
     t0 = time.time()
     for i in test_ids:
-        out = tr.render_view(int(i))
+        out = tr.render_view(int(i), want_normals=False)
         gt = imgs[i]
         m = tr.views.masks[i] if tr.views.masks is not None else None
         pred = np.clip(out["rgb"], 0, 1)
@@ -134,7 +134,10 @@ def build_params(args):
     for k, v in (args.set or []):
         for obj in (fp, rp, lp, tp):
             if hasattr(obj, k):
-                setattr(obj, k, type(getattr(obj, k))(v))
+                cur = getattr(obj, k)
+                if isinstance(cur, bool):
+                    v = v.lower() in ("1", "true", "yes", "on")
+                setattr(obj, k, type(cur)(v))
                 break
         else:
             raise SystemExit(f"unknown parameter {k}")
@@ -164,15 +167,16 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--field", default="grid", choices=["grid", "mlp"])
-    ap.add_argument("--size", type=int, default=96, help="training / evaluation image size (longest side)")
+    ap.add_argument("--size", type=int, default=192, help="training / evaluation image size (longest side)")
     ap.add_argument("--budget", type=float, default=420.0, help="training wall-clock budget in seconds")
     ap.add_argument("--budget-cpu", type=float, default=0.0,
                     help="also stop when training used this many CPU seconds (user+sys of this process; "
                          "a load-independent budget when the cores are shared)")
-    ap.add_argument("--iters", type=int, default=2000, help="schedule length (lr decays over it)")
+    ap.add_argument("--iters", type=int, default=3000,
+                    help="iteration cap (the lr schedule follows the time budget when that ends first)")
     ap.add_argument("--warmup", type=int, default=100)
     ap.add_argument("--rays", type=int, default=1024)
-    ap.add_argument("--lr", type=float, default=5e-4)
+    ap.add_argument("--lr", type=float, default=0.0, help="network lr (0 = auto: grid 1e-2, mlp 5e-4)")
     ap.add_argument("--grid-lr", type=float, default=1e-2)
     ap.add_argument("--n-uniform", type=int, default=8)
     ap.add_argument("--n-importance", type=int, default=24)
@@ -182,10 +186,10 @@ def main():
     ap.add_argument("--min-res", type=int, default=16)
     ap.add_argument("--max-res", type=int, default=128)
     ap.add_argument("--channels", type=int, default=4)
-    ap.add_argument("--mlp-width", type=int, default=128)
-    ap.add_argument("--mlp-depth", type=int, default=4)
+    ap.add_argument("--mlp-width", type=int, default=256, help="mlp: width (NeuS: 256)")
+    ap.add_argument("--mlp-depth", type=int, default=8, help="mlp: depth (NeuS: 8)")
     ap.add_argument("--c2f", type=int, default=0)
-    ap.add_argument("--fg-frac", type=float, default=0.0)
+    ap.add_argument("--fg-frac", type=float, default=0.5)
     ap.add_argument("--w-depth", type=float, default=0.1)
     ap.add_argument("--w-normal", type=float, default=0.05)
     ap.add_argument("--w-mask", type=float, default=0.1)
@@ -291,6 +295,16 @@ def main():
         save_ply(mesh, args.mesh / "mesh.ply")
         save_preview(mesh, args.mesh / "mesh.png")
         res["mesh"] = {"faces": int(len(mesh.faces)), "seconds": time.time() - t0}
+        if tr.views.masks is not None:
+            from manifoldneus.meshing import cull_by_masks, largest_components
+
+            dil = max(1, round(12 * tr.W / 384))  # ~12 px at the data's 384 px
+            tv = np.asarray(train_ids)
+            culled = largest_components(cull_by_masks(mesh, tr.views.K[tv], tr.poses_numpy()[tv],
+                                                      tr.views.masks[tv], dilation=dil, rule="all"))
+            save_ply(culled, args.mesh / "mesh_culled.ply")
+            save_preview(culled, args.mesh / "mesh_culled.png")
+            res["mesh"]["faces_culled"] = int(len(culled.faces))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=2))
     print()

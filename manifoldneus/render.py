@@ -194,17 +194,18 @@ def place_samples(field, o, d, near, far, p: RenderParams, cache: SDFCache | Non
     pts = o[:, None] + t[..., None] * d[:, None]
     bw = None if band_weights is None else band_weights.repeat_interleave(t.shape[1], 0)
     f = field.sdf(pts.reshape(-1, 3), bw).reshape(R, -1)
-    per = max(p.n_importance // p.up_steps, 1)
-    for i in range(p.up_steps):
+    steps = min(p.up_steps, p.n_importance)
+    per = p.n_importance // steps
+    for i in range(steps):
         w = alpha_to_weights(neus_alpha(f, 64.0 * 2**i))
-        n_new = per if i < p.up_steps - 1 else p.n_importance - per * (p.up_steps - 1)
+        n_new = per if i < steps - 1 else p.n_importance - per * (steps - 1)
         t_new = sample_pdf(t, w, n_new, det=not perturb)
         pts = o[:, None] + t_new[..., None] * d[:, None]
         bw = None if band_weights is None else band_weights.repeat_interleave(n_new, 0)
         f_new = field.sdf(pts.reshape(-1, 3), bw).reshape(R, -1)
         t, order = torch.cat([t, t_new], -1).sort(-1)
         f = torch.cat([f, f_new], -1).gather(1, order)
-    t_surf = _expected_t(t, alpha_to_weights(neus_alpha(f, 64.0 * 2**p.up_steps)))
+    t_surf = _expected_t(t, alpha_to_weights(neus_alpha(f, 64.0 * 2**steps)))
     if p.n_uniform:
         t = torch.cat([t, t_uni], -1).sort(-1).values
     return t, t_surf
@@ -340,15 +341,17 @@ def _composite(field, sdf, rgb, t, hit, d, background, out):
 
 def render_image(field, K, w2c, height: int, width: int, p: RenderParams, *, cache: SDFCache | None = None,
                  background: nn.Module | None = None, band_weights: torch.Tensor | None = None,
-                 device="cpu") -> dict:
+                 device="cpu", want_normals: bool = True) -> dict:
     """Render a whole view (no gradients). K [3,3], w2c [3|4,4] (numpy or torch).
     band_weights: [L] for the whole view, or None. Returns numpy arrays: rgb [H,W,3],
     depth [H,W] (z-depth along the optical axis, NaN-free; 0 where opacity is 0),
-    opacity [H,W], normal [H,W,3] (world frame)."""
+    opacity [H,W], normal [H,W,3] (world frame; only with ``want_normals``)."""
     K = torch.as_tensor(np.asarray(K), dtype=torch.float32, device=device)
     w2c = torch.as_tensor(np.asarray(w2c)[:3, :4], dtype=torch.float32, device=device)
     cols, rows = pixel_grid(height, width, device=device)
-    outs = {"rgb": [], "depth": [], "opacity": [], "normal": []}
+    outs = {"rgb": [], "depth": [], "opacity": []}
+    if want_normals:
+        outs["normal"] = []
     for i in range(0, cols.shape[0], p.chunk):
         c, r = cols[i:i + p.chunk], rows[i:i + p.chunk]
         o, d = camera_rays(c, r, K, w2c)
@@ -357,12 +360,13 @@ def render_image(field, K, w2c, height: int, width: int, p: RenderParams, *, cac
         need = field.color_uses_normal  # analytic normals need autograd even at inference
         with torch.set_grad_enabled(need):
             out = render_rays(field, o, d, p, cache=cache, background=background, band_weights=bw,
-                              perturb=False, train=False, want_normals=True)
+                              perturb=False, train=False, want_normals=want_normals)
         # expected t along the unit ray -> z-depth along the optical axis
         zfac = (d @ w2c[:3, :3].T)[:, 2]
         outs["rgb"].append(out["rgb"].detach())
         outs["depth"].append((out["depth"] / out["opacity"].clamp_min(1e-4) * zfac * (out["opacity"] > 1e-4)).detach())
         outs["opacity"].append(out["opacity"].detach())
-        outs["normal"].append(out["normal"].detach())
+        if want_normals:
+            outs["normal"].append(out["normal"].detach())
     res = {k: torch.cat(v).reshape(height, width, -1).squeeze(-1).cpu().numpy() for k, v in outs.items()}
     return res
