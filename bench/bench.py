@@ -63,12 +63,13 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--until", default=None)
     ap.add_argument("--force-all", action="store_true", help="recompute every stage (fresh timings)")
+    ap.add_argument("--force", action="append", default=[], metavar="STAGE", help="recompute this stage")
     ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
     args = ap.parse_args(argv)
     stages = list(pipeline.load_stages())
     started = time.time()
     pipeline.run(args.scene, until=args.until, overrides=args.overrides,
-                 force=stages if args.force_all else [], artifacts=args.artifacts)
+                 force=stages if args.force_all else args.force, artifacts=args.artifacts)
     rows = collect(args.scene, args.artifacts)
     result = {
         "scene": args.scene,
