@@ -518,8 +518,6 @@ def status(scene_name, overrides=(), profile=None, preset=None, artifacts=DEFAUL
 
 
 def describe_artifact(path: Path) -> list[str]:
-    from manifoldneus import io
-
     lines = []
     for item in sorted(path.iterdir()):
         if item.suffix == ".zarr":
@@ -536,7 +534,6 @@ def describe_artifact(path: Path) -> list[str]:
             lines.append(f"  {item.name}/ ({n} files)")
         else:
             lines.append(f"  {item.name:<28} {item.stat().st_size / 1024:9.1f} KiB")
-    del io
     return lines
 
 

@@ -54,8 +54,21 @@ def _jsonable(o):
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
+def _finite(o):
+    """Non-finite floats become null: strict JSON has no NaN or Infinity."""
+    if isinstance(o, float):
+        return o if np.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    if isinstance(o, (np.ndarray, np.floating)):
+        return _finite(_jsonable(o))
+    return o
+
+
 def save_json(path: Path, obj) -> None:
-    Path(path).write_text(json.dumps(obj, indent=2, default=_jsonable, allow_nan=False) + "\n")
+    Path(path).write_text(json.dumps(_finite(obj), indent=2, default=_jsonable, allow_nan=False) + "\n")
 
 
 def load_json(path: Path):

@@ -13,7 +13,6 @@ A round's artifact (`save_round`): ``poses.zarr`` (``w2c`` [N,4,4] for all views
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -195,15 +194,7 @@ def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> Non
                                             "optimised": np.isin(np.arange(n_views), rnd.ids),
                                             "pose_trace": trace, "pose_grad_norm": grads}, chunk_first=False)
     rnd.trainer.save(out_dir / "model.pt")
-    (out_dir / "round.json").write_text(json.dumps(info, indent=2, default=_jsonable) + "\n")
-
-
-def _jsonable(o):
-    if isinstance(o, (np.integer, np.floating, np.bool_)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
+    io.save_json(out_dir / "round.json", info)
 
 
 def load_round(round_dir: Path) -> dict:
