@@ -38,6 +38,8 @@ from pathlib import Path
 # Small dense solves (BA, Umeyama, eigh) are slower with threaded OpenBLAS on a loaded 2-core
 # machine than on one thread; torch keeps its own thread pool (run.threads).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# Busy-waiting OpenMP threads made training steps up to 8x slower when the cores are shared.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import cv2  # noqa: E402,F401  - loads the system zlib before pycolmap's own deflate symbols can shadow it
 import yaml  # noqa: E402
