@@ -27,6 +27,7 @@ import torch
 from manifoldneus.cameras import apply_correction
 from manifoldneus.config import param
 from manifoldneus.field import FieldParams, make_field
+from manifoldneus.gate import barf_weights
 from manifoldneus.losses import LossParams, compute_losses
 from manifoldneus.rays import camera_rays, project
 from manifoldneus.render import Background, RenderParams, SDFCache, render_image, render_rays, resolve_background
@@ -120,15 +121,6 @@ class Views:
     def float_images(self) -> np.ndarray:
         im = self.images
         return im.astype(np.float32) / 255.0 if im.dtype == np.uint8 else im.astype(np.float32)
-
-
-def barf_weights(progress: torch.Tensor | float, n_bands: int) -> torch.Tensor:
-    """BARF band weights w_k(a) = (1 - cos(pi * clamp(a - k, 0, 1))) / 2, k < L.
-    progress: scalar or [R] in [0, L]; returns [L] or [R, L]."""
-    a = torch.as_tensor(progress, dtype=torch.float32)
-    k = torch.arange(n_bands, dtype=torch.float32)
-    x = (a[..., None] - k).clamp(0.0, 1.0)
-    return (1.0 - torch.cos(math.pi * x)) / 2.0
 
 
 def lr_factor(step: int, total: int, warmup: int, min_ratio: float) -> float:
