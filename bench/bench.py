@@ -1,42 +1,233 @@
 #!/usr/bin/env python
-"""Benchmark: run the pipeline on a scene in one sitting, print a markdown table, write JSON.
+"""Benchmark: ManifoldNeuS, its NeuS baselines and the pycolmap reference on one scene, in one sitting.
 
-    python bench/bench.py --scene scan24 [--set section.key=value ...] [--force-all]
+    python bench/bench.py --scene scan24 [--systems manifoldneus,neus-barf,neus-colmap,pycolmap]
+                          [--set section.key=value ...] [--until STAGE] [--force STAGE | --force-all]
+                          [--artifacts DIR] [--out-dir DIR]
 
-Times and peak memory come from each stage's manifest (measured by the runner); `--force-all`
-recomputes every stage so that the times are of this sitting. Results go to
-``bench/<scene>/<YYYY-MM-DD>.json``. Speed targets are checked here, never in tests.
+A system is a pipeline preset (ManifoldNeuS: the default parameters) plus the stages it is charged
+with. All systems run in this one process, one preset after the other; versions are shared by
+fingerprint, so a stage common to several systems (ingest, the front-end, the reference) is
+computed once and the wall time in its manifest is counted for each system that uses it.
+Errors come from each preset's `evaluate` artifact (pycolmap: `evaluate_poses`).
+
+Prints a per-system table (ratios against pycolmap in columns of their own, since absolute times
+on a shared machine drift), a stage x system wall-time table and the per-stage table; writes
+``<out-dir>/<scene>/<YYYY-MM-DD>.json`` (``bench/results_md.py`` turns the latest into README's
+Results; a subset of the systems or an `--until` run gets a suffix instead). `--force-all`
+recomputes every version once, so that all times are of this sitting. Speed targets are checked
+here, never in tests.
+
+Other scripts and tests use it as ``from bench import bench``; its helpers (``collect``,
+``systems_table``, ``markdown_table``, ``fmt``, ...) are meant to be shared.
 """
 from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
+import math
+import os
 import platform
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import pipeline  # noqa: E402
+from manifoldneus import io  # noqa: E402
 
 FRONT_END = ("features", "matching", "covisibility", "spectral", "schedule")
+NEURAL = ("anchors", "successors", "mesh")
+BASELINE = "pycolmap"
+DEFAULT_OUT_DIR = ROOT / "bench"
 
 
-def collect(scene: str, artifacts: Path) -> dict:
+@dataclass(frozen=True)
+class System:
+    key: str                # name for --systems and key in the JSON
+    label: str              # name in the tables
+    preset: str | None      # pipeline preset whose `current@<preset>` pointers hold its versions
+    scored_by: str          # the stage whose artifact holds its errors
+
+
+SYSTEMS = {s.key: s for s in (
+    System("manifoldneus", "ManifoldNeuS", None, "evaluate"),
+    System("neus-barf", "NeuS-BARF", "neus-barf", "evaluate"),
+    System("neus-colmap", "NeuS-COLMAP", "neus-colmap", "evaluate"),
+    System(BASELINE, "pycolmap", None, "evaluate_poses"),
+)}
+
+# (column, key in a system's JSON): errors and time as multiples of pycolmap's.
+RATIOS = (("rotation", "rot_err_deg_mean"), ("centre", "center_err_units_mean"), ("time", "wall_seconds"))
+
+
+# ---------------------------------------------------------------------------- running
+
+
+@dataclass
+class Run:
+    """One pipeline run of a preset in this sitting."""
+
+    preset: str | None
+    params: dict             # section -> resolved parameters of the run
+    report: dict[str, str]   # stage -> "computed" | "reused" (by this run)
+    rows: dict[str, dict]    # stage -> manifest summary (see `collect`) + computed_this_sitting
+
+
+def plan(scene: str, overrides: list[str], preset: str | None) -> tuple[dict, dict[str, str]]:
+    """The resolved parameters and the stage -> fingerprint that `pipeline.run` will use."""
     stages = pipeline.load_stages()
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
+    resolved = pipeline.resolve_params(stages, overrides=overrides, preset=preset)
+    fps = pipeline.compute_fingerprints(stages, resolved, pipeline.resolve_scene(scene))
+    return resolved, {name: f["fingerprint"] for name, f in fps.items()}
+
+
+def last_stage_per_preset(systems: list[System], until: str | None) -> dict[str | None, str]:
+    """Preset -> the last stage to run: what its systems are scored by, cut at `--until`."""
+    order = list(pipeline.load_stages())
+    if until is not None and until not in order:
+        raise pipeline.PipelineError(f"unknown stage {until!r} for --until (stages: {', '.join(order)})")
+    out: dict[str | None, str] = {}
+    for s in systems:
+        last = max(out.get(s.preset, s.scored_by), s.scored_by, key=order.index)
+        out[s.preset] = last if until is None else min(last, until, key=order.index)
+    return out
+
+
+def collect(scene: str, artifacts: Path, preset: str | None = None, stages=None) -> dict[str, dict]:
+    """Stage -> fingerprint, wall / CPU seconds, peak RSS and metrics of the preset's current versions
+    (all stages that have one, or just `stages`)."""
+    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name, preset)
     rows = {}
-    for name in stages:
+    for name in stages if stages is not None else pipeline.load_stages():
         m = store.manifest(name)
         if m is not None:
             rows[name] = {k: m[k] for k in ("fingerprint", "wall_seconds", "cpu_seconds", "peak_rss_mib", "metrics")}
     return rows
 
 
+def run_systems(scene: str, systems: list[System], overrides: list[str], until: str | None, force: list[str],
+                artifacts: Path) -> list[Run]:
+    """Bring every selected system up to date, one preset after the other, in this process.
+
+    A forced stage is recomputed once per fingerprint: a version that two presets share (the
+    front-end) is not recomputed for the second one, so its time is still of this sitting."""
+    computed: set[tuple[str, str]] = set()  # (stage, fingerprint) computed in this sitting
+    runs = []
+    for preset, last in last_stage_per_preset(systems, until).items():
+        params, fps = plan(scene, overrides, preset)
+        report = pipeline.run(scene, until=last, overrides=overrides, preset=preset, artifacts=artifacts,
+                              force=[s for s in force if (s, fps[s]) not in computed])
+        computed |= {(s, fps[s]) for s, how in report.items() if how == "computed"}
+        runs.append(Run(preset, params, report, collect(scene, artifacts, preset, stages=report)))
+    for run in runs:  # a later preset reuses what an earlier one computed: still a time of this sitting
+        for stage, row in run.rows.items():
+            row["computed_this_sitting"] = (stage, row["fingerprint"]) in computed
+    return runs
+
+
+# ---------------------------------------------------------------------------- per-system results
+
+
+def charged_stages(system: System, params: dict) -> tuple[str, ...]:
+    """The stages whose time a system pays. Evaluation stages never count. The neural systems pay
+    for `reference` only when they start from its poses (`anchors.pose_init=reference`): the runner
+    computes it as a declared upstream of `anchors` either way."""
+    if system.key == BASELINE:
+        return ("ingest", "reference")
+    uses_reference = params["anchors"].pose_init == "reference"
+    return ("ingest", *FRONT_END, *(("reference",) if uses_reference else ()), *NEURAL)
+
+
+def pose_errors(summary: dict) -> dict:
+    """Flat pose-error scalars from a `pose_metrics` summary."""
+    wanted = (("rot_err_deg", ("mean", "median")), ("center_err_units", ("mean", "median")),
+              ("center_err_pct", ("mean",)), ("pre_r_deg", ("mean",)), ("pre_t_deg", ("mean",)))
+    return {f"{key}_{stat}": summary[key][stat] for key, stats in wanted for stat in stats}
+
+
+def neural_scores(evaluate_dir: Path, units: str | None) -> dict:
+    """Final-round pose errors, Chamfer and held-out novel views from `evaluation.json`."""
+    ev = io.load_json(evaluate_dir / "evaluation.json")
+    if not ev.get("poses"):
+        return {}
+    final = ev["poses"][-1]
+    out = {"units": units, "n_valid": final["n_views"], "n_views": len(final["per_view"]),
+           "pose_round": final["label"], **pose_errors(final["summary"])}
+    if "geometry" in ev:
+        out.update(chamfer_units=ev["geometry"]["chamfer_units"], chamfer_reference=ev["geometry"]["reference"])
+    views = ev.get("novel_views", {}).get("summary", {})
+    if views:
+        masked = "psnr_masked" in views
+        out.update(psnr=views["psnr_masked" if masked else "psnr"], ssim=views["ssim_masked" if masked else "ssim"],
+                   images_masked=masked, lpips=views.get("lpips"), lpips_status=views.get("lpips_status"))
+    return out
+
+
+def reference_scores(evaluate_poses_dir: Path) -> dict:
+    """pycolmap's pose errors from `evaluate_poses` (a sparse model: no surface, no renderings)."""
+    res = io.load_json(evaluate_poses_dir / "reference_pose_metrics.json")
+    if not res.get("evaluated"):
+        return {}
+    return {"units": res["units"], "n_valid": res["n_valid"], "n_views": res["n_views"], **pose_errors(res["summary"])}
+
+
+def system_result(system: System, run: Run, store: pipeline.Store) -> dict:
+    rows = run.rows
+    charged = charged_stages(system, run.params)
+    stages = {s: {k: rows[s][k] for k in ("fingerprint", "wall_seconds", "cpu_seconds", "peak_rss_mib",
+                                          "computed_this_sitting")} for s in charged if s in rows}
+    scores = {}
+    if system.scored_by in rows:
+        version = store.version_dir(system.scored_by, rows[system.scored_by]["fingerprint"])
+        scores = (reference_scores(version) if system.key == BASELINE
+                  else neural_scores(version, rows[system.scored_by]["metrics"].get("units")))
+    return {
+        "label": system.label,
+        "preset": system.preset,
+        "scored_by": system.scored_by,
+        "stages": stages,
+        "missing_stages": [s for s in charged if s not in rows],
+        "wall_seconds": round(sum(r["wall_seconds"] for r in stages.values()), 2),
+        "peak_rss_mib": max((r["peak_rss_mib"] for r in stages.values()), default=None),
+        **scores,
+    }
+
+
+def ratio(value, baseline) -> float | None:
+    if not (is_number(value) and is_number(baseline)) or baseline == 0:
+        return None
+    return value / baseline
+
+
+def add_ratios(systems: dict[str, dict]) -> None:
+    """`over_pycolmap`: each system's errors and time as multiples of pycolmap's (when both ran whole)."""
+    base = systems.get(BASELINE, {})
+    for result in systems.values():
+        whole = base and not base["missing_stages"] and not result["missing_stages"]
+        result["over_pycolmap"] = {col: ratio(result.get(key), base.get(key)) if whole else None
+                                   for col, key in RATIOS}
+
+
+def stage_rows(runs: list[Run]) -> dict[str, dict]:
+    """Every version used in this sitting, once: `stage` for the first run's, `stage @preset` for a
+    version of a later preset that differs (e.g. its schedule)."""
+    rows, seen = {}, set()
+    for run in runs:
+        for stage, row in run.rows.items():
+            if (stage, row["fingerprint"]) in seen:
+                continue
+            seen.add((stage, row["fingerprint"]))
+            label = stage if run is runs[0] else f"{stage} @{run.preset or 'default'}"
+            rows[label] = row
+    return rows
+
+
 def summarise(rows: dict) -> dict:
+    """Our front-end (features -> schedule) against pycolmap's extraction + matching."""
     out = {}
     front = [rows[s]["wall_seconds"] for s in FRONT_END if s in rows]
     if len(front) == len(FRONT_END):
@@ -48,43 +239,197 @@ def summarise(rows: dict) -> dict:
     return out
 
 
-def table(rows: dict) -> str:
-    lines = ["| stage | wall s | cpu s | peak MiB | key metrics |", "|---|---:|---:|---:|---|"]
+def machine() -> dict:
+    import psutil
+
+    cpuinfo = Path("/proc/cpuinfo")
+    models = [ln.split(":", 1)[1].strip() for ln in cpuinfo.read_text().splitlines()
+              if ln.startswith("model name")] if cpuinfo.exists() else []
+    return {"platform": platform.platform(), "cpus": os.cpu_count(),
+            "cpu_model": models[0] if models else platform.processor(),
+            "memory_gib": round(psutil.virtual_memory().total / 2**30, 1),
+            # how busy the machine was: times on a shared machine drift
+            "load_average_at_start": [round(x, 2) for x in os.getloadavg()]}
+
+
+def run_bench(scene: str, systems: list[System], overrides=(), until=None, force=(),
+              artifacts=pipeline.DEFAULT_ARTIFACTS) -> dict:
+    """Run the systems and return the JSON-ready result."""
+    started, host = time.time(), machine()
+    runs = run_systems(scene, systems, list(overrides), until, list(force), artifacts)
+    by_preset = {run.preset: run for run in runs}
+    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
+    results = {s.key: system_result(s, by_preset[s.preset], store) for s in systems}
+    add_ratios(results)
+    return {
+        "scene": pipeline.resolve_scene(scene).name,
+        "date": dt.datetime.fromtimestamp(started).isoformat(timespec="seconds"),
+        "machine": host,
+        "overrides": list(overrides),
+        "until": until,
+        "total_wall_seconds": round(time.time() - started, 1),
+        "systems": results,
+        "stages": stage_rows(runs),
+        "summary": summarise(next((r for r in runs if r.preset is None), runs[0]).rows),  # MaVOS front-end
+    }
+
+
+def result_path(result: dict, out_dir: Path) -> Path:
+    """``<scene>/<date>.json`` for a full bench (what README's Results show); a subset of the systems
+    or a run cut by --until gets a suffix, so it never overwrites the day's full bench."""
+    name = result["date"][:10]
+    if list(result["systems"]) != list(SYSTEMS):
+        name += "-" + "+".join(result["systems"])
+    if result["until"]:
+        name += f"-until-{result['until']}"
+    return Path(out_dir) / result["scene"] / f"{name}.json"
+
+
+def write_result(result: dict, out_dir: Path) -> Path:
+    path = result_path(result, out_dir)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    io.save_json(path, result)
+    return path
+
+
+# ---------------------------------------------------------------------------- markdown
+
+
+def is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def fmt(v, spec: str = ".3g") -> str:
+    """A table cell: numbers formatted, anything missing as an em dash."""
+    return format(v, spec) if is_number(v) else "—"
+
+
+def markdown_table(header: list[str], rows: list[list[str]], align: str | None = None) -> str:
+    """`align`: one letter per column, l or r (default: the first left, numbers right)."""
+    align = align or "l" + "r" * (len(header) - 1)
+    rule = ["---" if a == "l" else "---:" for a in align]
+    return "\n".join("| " + " | ".join(r) + " |" for r in [header, rule, *rows])
+
+
+def systems_table(result: dict) -> str:
+    """One row per system: pose errors, Chamfer, novel views, time, memory, ratios to pycolmap."""
+    systems = result["systems"]
+    units = next((s["units"] for s in systems.values() if s.get("units")), "units")
+    with_lpips = any(is_number(s.get("lpips")) for s in systems.values())
+    header = ["system", "views", "rotation ° mean / median", f"centre ({units}) mean / median", "PRE_r °", "PRE_t °",
+              f"Chamfer ({units})", "PSNR dB", "SSIM", *(["LPIPS"] if with_lpips else []), "wall s", "peak MiB",
+              *(f"{col} ÷ pycolmap" for col, _ in RATIOS)]
+    rows = []
+    for s in systems.values():
+        views = f"{s['n_valid']}/{s['n_views']}" if "n_valid" in s else "—"
+        rows.append([
+            s["label"], views,
+            f"{fmt(s.get('rot_err_deg_mean'))} / {fmt(s.get('rot_err_deg_median'))}",
+            f"{fmt(s.get('center_err_units_mean'))} / {fmt(s.get('center_err_units_median'))}",
+            fmt(s.get("pre_r_deg_mean")), fmt(s.get("pre_t_deg_mean")), fmt(s.get("chamfer_units")),
+            fmt(s.get("psnr"), ".2f"), fmt(s.get("ssim"), ".3f"), *([fmt(s.get("lpips"), ".3f")] if with_lpips else []),
+            fmt(s["wall_seconds"], ".1f"), fmt(s["peak_rss_mib"], ".0f"),
+            *(fmt(s["over_pycolmap"][col], ".2f") for col, _ in RATIOS),
+        ])
+    return markdown_table(header, rows)
+
+
+def stage_system_table(result: dict) -> str:
+    """Wall seconds of each charged stage (rows) per system (columns), and the totals."""
+    systems = result["systems"].values()
+    order = list(pipeline.load_stages())
+    stages = sorted({st for s in systems for st in s["stages"]}, key=order.index)
+    rows = [[st, *(fmt(s["stages"].get(st, {}).get("wall_seconds"), ".1f") for s in systems)] for st in stages]
+    rows.append(["**total**", *(f"**{fmt(s['wall_seconds'], '.1f')}**" for s in systems)])
+    return markdown_table(["stage (wall s)", *(s["label"] for s in systems)], rows)
+
+
+def notes(result: dict) -> list[str]:
+    """Footnotes that say how the systems table was measured."""
+    systems = result["systems"]
+    charged = [st for s in systems.values() for st in s["stages"].values()]
+    fresh = sum(st["computed_this_sitting"] for st in charged)
+    sitting = ("All of them are of this sitting." if fresh == len(charged) else
+               f"{fresh} of the {len(charged)} are of this sitting, the others of the run that first computed the "
+               "cached version (`--force-all` for a fresh sitting).")
+    out = [
+        "Times: sum of the wall times recorded in the manifests of the stages charged to each system (stage "
+        "table). Versions shared between systems (ingest, the front-end, the pycolmap reference) are computed "
+        f"once and counted for every system that uses them; evaluation stages are never counted. {sitting}",
+        "Pose errors after a Sim3 alignment to the ground truth; the NeuS systems over the views they optimise "
+        "(held-out views excluded), pycolmap over the views it registers. PRE_r / PRE_t: mean relative pose "
+        "errors over view pairs.",
+        "÷ pycolmap: the system's mean rotation error, mean centre error and wall time divided by pycolmap's; "
+        "above 1, pycolmap is better.",
+        "Peak memory: the largest peak RSS of the system's stages, measured on the one bench process, so it "
+        "includes what earlier stages left allocated (an upper bound).",
+    ]
+    chamfer_refs = {s["chamfer_reference"] for s in systems.values() if s.get("chamfer_reference")}
+    if chamfer_refs:
+        out.append(f"Chamfer against the {'; '.join(sorted(chamfer_refs))}. pycolmap makes a sparse model, "
+                   "no surface and no renderings; NeuS-COLMAP is NeuS trained on its poses.")
+    rendered = [s for s in systems.values() if "psnr" in s]
+    if rendered:
+        masked = "masked (background zeroed)" if all(s["images_masked"] for s in rendered) else "unmasked"
+        lpips = "" if any(is_number(s.get("lpips")) for s in rendered) else f" {rendered[0]['lpips_status']}."
+        out.append(f"PSNR / SSIM on the held-out views, {masked}, rendered from the final model with the "
+                   f"ground-truth poses.{lpips}")
+    missing = {st for s in systems.values() for st in s["missing_stages"]}
+    if missing:
+        names = ", ".join(sorted(missing, key=list(pipeline.load_stages()).index))
+        out.append(f"Not run in this sitting (`--until {result['until']}`): {names}; totals leave them out.")
+    return out
+
+
+def comparison_markdown(result: dict) -> str:
+    """The systems table, its footnotes and the stage x system table (also README's Results)."""
+    footnotes = "\n".join(f"{i}. {n}" for i, n in enumerate(notes(result), 1))
+    return f"{systems_table(result)}\n\n{footnotes}\n\n{stage_system_table(result)}"
+
+
+def stages_table(rows: dict) -> str:
+    """Every version used in the sitting: wall, CPU, peak memory and the first metrics."""
+    body = []
     for name, r in rows.items():
         metrics = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                             for k, v in list(r["metrics"].items())[:8] if not isinstance(v, (dict, list)))
-        lines.append(f"| {name} | {r['wall_seconds']:.1f} | {r['cpu_seconds']:.1f} | {r['peak_rss_mib']:.0f} | {metrics} |")
-    return "\n".join(lines)
+        body.append([name, fmt(r["wall_seconds"], ".1f"), fmt(r["cpu_seconds"], ".1f"), fmt(r["peak_rss_mib"], ".0f"),
+                     metrics])
+    return markdown_table(["stage", "wall s", "cpu s", "peak MiB", "key metrics"], body, align="lrrrl")
+
+
+# ---------------------------------------------------------------------------- CLI
+
+
+def parse_systems(text: str) -> list[System]:
+    keys = [k.strip() for k in text.split(",") if k.strip()]
+    unknown = [k for k in keys if k not in SYSTEMS]
+    if unknown or not keys:
+        raise argparse.ArgumentTypeError(f"unknown system(s) {unknown} (known: {', '.join(SYSTEMS)})")
+    return [SYSTEMS[k] for k in SYSTEMS if k in keys]  # table order, whatever the order given
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", default="scan24")
-    ap.add_argument("--set", dest="overrides", action="append", default=[])
-    ap.add_argument("--until", default=None)
-    ap.add_argument("--force-all", action="store_true", help="recompute every stage (fresh timings)")
+    ap.add_argument("--systems", type=parse_systems, default=list(SYSTEMS.values()),
+                    help=f"comma-separated subset of {','.join(SYSTEMS)} (default: all)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    ap.add_argument("--until", default=None, help="stop every run after this stage")
+    ap.add_argument("--force-all", action="store_true", help="recompute every version once (fresh timings)")
     ap.add_argument("--force", action="append", default=[], metavar="STAGE", help="recompute this stage")
     ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
+    ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT_DIR, help="results go to OUT_DIR/<scene>/<date>.json")
     args = ap.parse_args(argv)
-    stages = list(pipeline.load_stages())
-    started = time.time()
-    pipeline.run(args.scene, until=args.until, overrides=args.overrides,
-                 force=stages if args.force_all else args.force, artifacts=args.artifacts)
-    rows = collect(args.scene, args.artifacts)
-    result = {
-        "scene": args.scene,
-        "date": dt.datetime.now().isoformat(timespec="seconds"),
-        "machine": {"platform": platform.platform(), "cpus": __import__("os").cpu_count()},
-        "overrides": args.overrides,
-        "total_wall_seconds": round(time.time() - started, 1),
-        "stages": rows,
-        "summary": summarise(rows),
-    }
-    out_dir = ROOT / "bench" / pipeline.resolve_scene(args.scene).name
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / f"{dt.date.today().isoformat()}.json"
-    path.write_text(json.dumps(result, indent=2, default=str) + "\n")
-    print(table(rows))
+    force = list(pipeline.load_stages()) if args.force_all else args.force
+    try:
+        result = run_bench(args.scene, args.systems, args.overrides, args.until, force, args.artifacts)
+    except (pipeline.PipelineError, pipeline.ParamError, pipeline.SceneError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    path = write_result(result, args.out_dir)
+    print(f"## {result['scene']}: systems\n\n{comparison_markdown(result)}\n")
+    print(f"## {result['scene']}: every version used\n\n{stages_table(result['stages'])}\n")
     for k, v in result["summary"].items():
         print(f"- {k}: {v}")
     print(f"\nwrote {path}")

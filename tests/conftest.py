@@ -6,6 +6,9 @@ import sys
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# As in pipeline.py, but before anything imports torch (manifoldneus below does): busy-waiting
+# OpenMP threads made the neural tests about 3x slower on a shared 2-core machine.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np
 import pytest

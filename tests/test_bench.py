@@ -1,0 +1,103 @@
+"""The bench on the tiny synthetic scene: all four systems in one sitting, one JSON, one table with
+ratio columns; and README's Results generated from that JSON, between the markers only."""
+from __future__ import annotations
+
+import contextlib
+import io
+import itertools
+import json
+import math
+import shutil
+from pathlib import Path
+
+import pytest
+from test_end_to_end import TINY
+
+from bench import bench, results_md
+
+POSE_ERRORS = ("rot_err_deg_mean", "rot_err_deg_median", "center_err_units_mean", "center_err_units_median",
+               "pre_r_deg_mean", "pre_t_deg_mean")
+NEURAL_SYSTEMS = ("manifoldneus", "neus-barf", "neus-colmap")
+
+
+@pytest.fixture(scope="module")
+def tiny_bench(tmp_path_factory):
+    """(output dir, printed text) of `bench.py` on the tiny scene with every system."""
+    tmp = tmp_path_factory.mktemp("bench")
+    argv = ["--scene", "synthetic", "--artifacts", str(tmp / "artifacts"), "--out-dir", str(tmp / "out")]
+    argv += [arg for override in TINY for arg in ("--set", override)]
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert bench.main(argv) == 0
+    return tmp / "out", printed.getvalue()
+
+
+def bench_json(out_dir: Path) -> tuple[Path, dict]:
+    [path] = (out_dir / "synthetic").glob("*.json")
+    return path, json.loads(path.read_text())
+
+
+def test_json_has_every_system_with_finite_pose_errors(tiny_bench):
+    path, result = bench_json(tiny_bench[0])
+    assert path.stem == result["date"][:10]  # a full bench: <date>.json, what README's Results read
+    systems = result["systems"]
+    assert list(systems) == list(bench.SYSTEMS)
+    for key, s in systems.items():
+        assert all(math.isfinite(s[e]) for e in POSE_ERRORS), key
+        assert s["wall_seconds"] > 0 and s["peak_rss_mib"] > 0 and not s["missing_stages"]
+        assert all(math.isfinite(v) for v in s["over_pycolmap"].values()), key
+    assert systems["pycolmap"]["over_pycolmap"] == {"rotation": 1.0, "centre": 1.0, "time": 1.0}
+    for key in NEURAL_SYSTEMS:
+        assert math.isfinite(systems[key]["chamfer_units"]) and systems[key]["psnr"] > 0
+    # the front-end is one version, computed once in this sitting and charged to every NeuS system
+    features = [systems[key]["stages"]["features"] for key in NEURAL_SYSTEMS]
+    assert len({f["fingerprint"] for f in features}) == 1 and all(f["computed_this_sitting"] for f in features)
+    assert "reference" in systems["neus-colmap"]["stages"] and "reference" not in systems["manifoldneus"]["stages"]
+    assert result["summary"]["front_end_over_pycolmap"] > 0
+
+
+def test_table_has_one_row_per_system_with_ratio_columns(tiny_bench):
+    lines = tiny_bench[1].splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("| system |"))
+    block = itertools.takewhile(lambda line: line.startswith("|"), lines[start:])  # up to the blank line
+    table = [[cell.strip() for cell in line.strip("|").split(" | ")] for line in block]
+    header, rows = table[0], table[2:]
+    for column in ("rotation ÷ pycolmap", "centre ÷ pycolmap", "time ÷ pycolmap"):
+        assert column in header
+    assert [r[0] for r in rows] == [s.label for s in bench.SYSTEMS.values()]
+    assert all(len(r) == len(header) for r in rows)
+    pycolmap = rows[-1]
+    assert [pycolmap[header.index(c)] for c in header if c.endswith("÷ pycolmap")] == ["1.00"] * 3
+
+
+def test_partial_runs_do_not_overwrite_the_full_bench(tmp_path):
+    full = {"scene": "s", "date": "2026-01-02T10:00:00", "until": None, "systems": dict.fromkeys(bench.SYSTEMS)}
+    assert bench.result_path(full, tmp_path).name == "2026-01-02.json"
+    subset = {**full, "systems": {"pycolmap": None}, "until": "evaluate_poses"}
+    assert bench.result_path(subset, tmp_path).name == "2026-01-02-pycolmap-until-evaluate_poses.json"
+
+
+def test_results_md_replaces_between_markers_only_and_is_idempotent(tiny_bench, tmp_path):
+    path, result = bench_json(tiny_bench[0])
+    bench_dir = tmp_path / "bench"
+    (bench_dir / "synthetic").mkdir(parents=True)
+    shutil.copy(path, bench_dir / "synthetic" / "2026-01-01.json")
+    # an older-format file is newer: the newest file with systems is used; partial runs never are
+    (bench_dir / "synthetic" / "2026-01-02.json").write_text(json.dumps({"scene": "synthetic", "stages": {}}))
+    (bench_dir / "synthetic" / "2026-01-03-pycolmap.json").write_text(json.dumps({**result, "systems": {}}))
+    before = "# project\n\n## Results\n\n"
+    after = "\n\nHow we compare: written by hand.\n"
+    readme = tmp_path / "README.md"
+    readme.write_text(f"{before}{results_md.BEGIN}\nold numbers\n{results_md.END}{after}")
+    argv = ["--readme", str(readme), "--bench-dir", str(bench_dir)]
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert results_md.main(argv) == 0
+        text = readme.read_text()
+        assert results_md.main(argv) == 0
+    assert readme.read_text() == text  # idempotent
+    assert text.startswith(before + results_md.BEGIN) and text.endswith(results_md.END + after)
+    inside = text[len(before):-len(after)]
+    assert "old numbers" not in inside and "### synthetic" in inside and "2026-01-01.json" in inside
+    assert "| ManifoldNeuS |" in inside and "time ÷ pycolmap" in inside and result["date"][:10] in inside
+    with pytest.raises(ValueError):
+        results_md.replace_between_markers("no markers here", "body")
