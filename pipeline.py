@@ -572,7 +572,9 @@ def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None) -> li
     for scene_dir in scenes:
         store = Store(Path(artifacts), scene_dir.name)
         with store.lock():
-            for stage_dir in sorted(p for p in scene_dir.iterdir() if p.is_dir()):
+            # only stage folders: others (e.g. the report) are not versioned
+            stage_names = set(load_stages())
+            for stage_dir in sorted(p for p in scene_dir.iterdir() if p.is_dir() and p.name in stage_names):
                 keep = {os.readlink(p) for p in stage_dir.iterdir() if p.is_symlink()}
                 for version in stage_dir.iterdir():
                     if version.is_symlink() or version.name in keep or version.name.startswith(".ckpt-"):

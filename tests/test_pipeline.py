@@ -144,8 +144,11 @@ def test_cli_status_show_params_diff_gc(capsys, artifacts):
     assert pipeline.main(["params-diff", *args, *sets, "--set", "ingest.downscale=2", "ingest"]) == 0
     assert "ingest.downscale: 1 -> 2" in capsys.readouterr().out
     assert pipeline.main(["run", *args, *sets, "--set", "ingest.downscale=2", "--until", "ingest"]) == 0
+    report = artifacts / "synthetic" / "report" / "figs"  # a non-stage folder gc must leave alone
+    report.mkdir(parents=True)
     assert pipeline.main(["gc", "--artifacts", str(artifacts)]) == 0
     assert "removed 1 old version" in capsys.readouterr().out
+    assert report.is_dir()
 
 
 def test_ground_truth_is_structurally_private(monkeypatch):

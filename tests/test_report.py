@@ -1,0 +1,84 @@
+"""bench/report.py: the report page built from the tiny synthetic pipeline's artifacts (default run
+and the neus-barf preset; neus-colmap left out, so the page must name it missing), and the
+Fig. A1 helpers on hand-made numbers."""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from test_end_to_end import TINY, current
+
+import pipeline
+from bench import report
+from manifoldneus import io
+
+
+def test_overlap_groups_and_top_p_share_by_hand():
+    c = np.array([5.0, 4.0, 3.0, 2.0, 1.0])  # overlap: view 0 easiest, view 4 hardest
+    grads = np.array([1.0, 2.0, 3.0, 4.0, 10.0])  # total 20
+    top, bottom = report.overlap_groups(c, 20)
+    assert top.tolist() == [0] and bottom.tolist() == [4]
+    assert report.top_p_share(grads, c, 20) == pytest.approx(1 / 20)
+    assert report.top_p_share(grads, c, 40) == pytest.approx((1 + 2) / 20)
+    assert report.top_p_share(grads[::-1], c[::-1], 20) == pytest.approx(1 / 20)  # follows c, not position
+    # per iteration ([T, n]); an iteration without gradients (poses frozen) has no share
+    shares = report.top_p_share(np.stack([grads, np.zeros(5)]), c, 20)
+    assert shares[0] == pytest.approx(0.05) and np.isnan(shares[1])
+
+
+# Only for speed: two successor rounds instead of four (still more than one to lay end to end),
+# and no GT-pose reference surface (the synthetic scene's Chamfer uses its exact surface).
+FASTER = TINY + ["schedule.successors_per_round=8", "reference_surface.enabled=false"]
+
+
+@pytest.fixture(scope="module")
+def built_report(tmp_path_factory):
+    artifacts = tmp_path_factory.mktemp("report") / "artifacts"
+    pipeline.run("synthetic", overrides=FASTER, artifacts=artifacts)
+    pipeline.run("synthetic", overrides=FASTER, preset="neus-barf", artifacts=artifacts)
+    out = artifacts.parent / "report"
+    page = report.build_report("synthetic", artifacts, out)
+    return artifacts, page
+
+
+def test_page_references_existing_pngs(built_report):
+    _, page = built_report
+    text = page.read_text()
+    images = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    assert len(images) >= 10 and all(name.endswith(".png") and (page.parent / name).is_file() for name in images)
+    for section in ("Schedule", "Aligned cameras", "Pose error per round", "Loss curves", "Mesh previews",
+                    "Held-out views", "Easy-view bias"):
+        assert f"## {section}" in text
+
+
+def test_pose_error_row_per_round_and_missing_system(built_report):
+    artifacts, page = built_report
+    text = page.read_text()
+    successor_rounds = sorted(p.name for p in current(artifacts, "successors").glob("round_*"))
+    assert len(successor_rounds) >= 2  # rounds laid end to end in the plots
+    expected = {"ManifoldNeuS": ["initial", "anchors", *successor_rounds], "NeuS-BARF": ["initial", "anchors"],
+                "pycolmap": ["final"]}
+    for system, labels in expected.items():
+        rows = re.findall(rf"^\| {system} \| (\w+) \| \d+ \| [\d.]+ \|", text, re.M)
+        assert rows == labels, system
+    assert re.search(r"^\| NeuS-COLMAP \| neus-colmap \| - \| schedule, anchors, successors, mesh, evaluate: ",
+                     text, re.M)
+    assert "| NeuS-COLMAP | initial |" not in text
+
+
+def test_easy_view_bias_numbers(built_report):
+    _, page = built_report
+    bias = io.load_json(page.parent / "report.json")["easy_view_bias"]
+    assert set(bias) == {"NeuS-BARF", "ManifoldNeuS"}
+    for system, rounds in bias.items():
+        assert rounds, system
+        shares = []
+        for b in rounds.values():
+            for key in ("rot_easy", "rot_hard", "centre_easy", "centre_hard"):
+                assert np.isfinite(np.array(b[key], float)).all(), (system, key)
+            learning = [i for i, s in enumerate(b["top_share"]) if s is not None]  # null: poses still frozen
+            for key in ("grad_easy", "grad_hard", "top_share"):
+                assert all(np.isfinite(b[key][i]) for i in learning), (system, key)
+            shares += [b["top_share"][i] for i in learning]
+        assert shares and all(0.0 <= s <= 1.0 for s in shares), system
