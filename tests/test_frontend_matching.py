@@ -172,6 +172,65 @@ def test_match_descriptors_mutual_and_ratio():
 # --------------------------------------------------------------------------- matching
 
 
+def test_match_descriptors_equals_brute_force():
+    """Mutual NN + Lowe ratio against a per-descriptor loop (the vectorised reductions must not change it)."""
+    rng = np.random.default_rng(3)
+    a = features.normalize_descriptors(rng.random((60, 128)) ** 3)
+    b = features.normalize_descriptors(np.concatenate([a[:40] + 0.05 * rng.random((40, 128)), rng.random((25, 128)) ** 3]))
+    for ratio, mutual in [(0.8, True), (0.95, False), (1.0, True)]:
+        expected = []
+        dist = np.sqrt(np.maximum(2 - 2 * a @ b.T, 0))
+        for i in range(len(a)):
+            order = np.argsort(dist[i])
+            j = order[0]
+            if ratio < 1.0 and not dist[i, j] < ratio * dist[i, order[1]]:
+                continue
+            if mutual and np.argmin(dist[:, j]) != i:
+                continue
+            expected.append((i, j))
+        got = matching.match_descriptors(a, b, ratio=ratio, mutual=mutual)
+        assert got.dtype == np.int32
+        np.testing.assert_array_equal(got, np.array(expected, np.int32).reshape(-1, 2))
+
+
+def test_ransac_iterations_budget():
+    # P(5 of the 15 inliers among 20 matches) = C(15,5) / C(20,5) = 0.194: 33 draws for 0.999
+    assert matching.ransac_iterations(20, 15, 0.999, 10000) == 33
+    assert matching.ransac_iterations(15, 15, 0.999, 10000) == 1  # every sample is all-inlier
+    assert matching.ransac_iterations(100, 15, 0.999, 10000) == 10000  # capped
+    assert matching.ransac_iterations(40, 15, 1.0, 500) == 500  # certainty: no cap
+    budgets = [matching.ransac_iterations(n, 15, 0.999, 10**9) for n in range(15, 80)]
+    assert all(x <= y for x, y in zip(budgets, budgets[1:]))
+    assert matching.ransac_iterations(30, 15, 0.99, 10**9) < matching.ransac_iterations(30, 15, 0.999, 10**9)
+
+
+def test_capped_verification_finds_min_inlier_model():
+    """20 matches, exactly 15 consistent with the true pose: the capped budget (33 iterations)
+    still finds them, like the full 10000 iterations."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    w1, w2 = cam(0), cam(15, elevation_deg=55)
+    X = rng.uniform(-0.6, 0.6, (20, 3)) * [1, 1, 0.5]
+
+    def project(w2c):
+        x = (K_SYN @ (X @ w2c[:3, :3].T + w2c[:3, 3]).T).T
+        return x[:, :2] / x[:, 2:]
+
+    x1, x2 = project(w1), project(w2)
+    x2[15:] = rng.uniform(20, 236, (5, 2))  # 5 outliers
+    results = []
+    for iters in (matching.ransac_iterations(20, 15, 0.999, 10000), 10000):
+        cv2.setRNGSeed(7)
+        results.append(matching.verify_pair(x1, x2, K_SYN, K_SYN, max_iters=iters))
+    capped, full = results
+    np.testing.assert_array_equal(capped["inliers"], np.arange(20) < 15)
+    np.testing.assert_array_equal(capped["inliers"], full["inliers"])
+    np.testing.assert_allclose(capped["R"], full["R"], atol=1e-9)
+    R_gt, _ = rel_pose(w1, w2)
+    assert rotation_angle_deg(capped["R"].T @ R_gt) < 2.0  # 15 exact points spanning a small box
+
+
 def test_matching_recovers_known_relative_pose():
     w1, w2 = cam(0), cam(12, elevation_deg=55)
     f1, f2 = features.extract_sift(render(w1)), features.extract_sift(render(w2))
@@ -240,6 +299,9 @@ def test_stage_chain_with_featureless_view(tmp_path, caplog):
         assert len(matching.inliers_of(arrays, p)) == arrays["n_inliers"][p]
     assert np.isfinite(arrays["R"]).all() and np.isfinite(arrays["t"]).all()
     assert mctx.metrics["pairs_ge15_inliers"] == 3
+    # pairs with the blank view have no raw matches: not verified, and logged as such
+    assert mctx.metrics["pairs_not_verified"] == 3
+    assert any("3 of 6 pairs" in r.message and "not verified" in r.message for r in caplog.records)
 
     caplog.clear()
     cctx = FakeCtx(covisibility, tmp_path / "covisibility", {"matching": mctx.out})
