@@ -25,6 +25,8 @@ class MeshParams:
     keep_components: int = param(1, "Keep this many largest connected components (0 = all)", lo=0)
     cull_by_masks: bool = param(True, "Cull vertices outside the training views' dilated masks (when masks exist)")
     cull_dilation: int = param(12, "Mask dilation (px at ingest resolution) for culling", lo=0)
+    cull_unseen: bool = param(True, "Cull surface that no training view sees (self-occlusion z-buffer)")
+    visibility_size: int = param(128, "Image size (longest side, px) of the z-buffers that decide visibility", lo=16)
     preview_size: int = param(320, "Side of each of the 3 preview renderings (px)", lo=64)
 
 
@@ -39,20 +41,26 @@ def trainer_from_checkpoint(path: Path, views: Views, device: str = "cpu") -> Tr
     return t
 
 
-def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None):
-    """Mesh of the trainer's SDF; culled by the given views' dilated masks when asked."""
+def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=None):
+    """Mesh of the trainer's SDF; culled by the given views' dilated masks and to the surface they
+    see, when asked (K [N,3,3] and w2c [N,4,4] at image size hw = (H, W), the masks' size)."""
     mesh = meshing.extract_mesh(trainer.sdf_fn(), p.resolution, trainer.rp.radius, p.keep_components)
-    if p.cull_by_masks and masks is not None:
-        mesh = meshing.cull_by_masks(mesh, K, w2c, masks, dilation=p.cull_dilation)
-        if p.keep_components > 0 and len(mesh.faces):
-            mesh = meshing.largest_components(mesh, p.keep_components)
+    culled = False
+    if p.cull_by_masks and masks is not None and len(mesh.faces):
+        mesh, culled = meshing.cull_by_masks(mesh, K, w2c, masks, dilation=p.cull_dilation), True
+    if p.cull_unseen and K is not None and hw is not None and len(mesh.faces):
+        mesh, culled = meshing.cull_unseen(mesh, K, w2c, hw, p.visibility_size), True
+    if culled and p.keep_components > 0 and len(mesh.faces):
+        mesh = meshing.largest_components(mesh, p.keep_components)
     return mesh
 
 
-def save_mesh_with_preview(mesh, out_dir: Path, p: MeshParams, stem: str = "mesh") -> None:
+def save_mesh_with_preview(mesh, out_dir: Path, p: MeshParams, stem: str = "mesh", w2c=None) -> None:
+    """PLY + a 3-view PNG preview (seen from three of the cameras ``w2c`` when given)."""
     meshing.save_ply(mesh, out_dir / f"{stem}.ply")
     if len(mesh.faces):
-        io.save_png(out_dir / f"{stem}_preview.png", meshing.render_preview(mesh, p.preview_size))
+        directions, up = meshing.preview_directions(w2c) if w2c is not None and len(w2c) >= 3 else (None, None)
+        io.save_png(out_dir / f"{stem}_preview.png", meshing.render_preview(mesh, p.preview_size, directions, up))
 
 
 def novel_views(trainer: Trainer, views: Views, ids, w2c: np.ndarray, out_dir: Path | None = None,

@@ -96,6 +96,40 @@ def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all"):
     return out
 
 
+def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0):
+    """Remove vertices that no view sees: surface the training never observed (e.g. the underside,
+    where a grid SDF keeps its initial sphere) has no image evidence, and DTU's evaluation crops it too.
+
+    Per view, a z-buffer of the mesh's own vertices at ``size`` px (longest side; min-filtered 3x3 to
+    close gaps between splatted vertices); a vertex is seen when it lies in the image, in front of the
+    camera, and no deeper than the z-buffer by ``depth_tol_px`` pixel footprints (a slanted surface
+    changes depth across the 3x3 filter by about its slope times a footprint).
+    K [N,3,3] and w2c [N,4,4] at image size ``hw`` = (H, W). Faces keep only when all their vertices stay."""
+    from scipy.ndimage import minimum_filter
+
+    V = np.asarray(mesh.vertices, np.float64)  # [P,3]
+    H, W = hw
+    scale = size / max(H, W)
+    h, w = max(int(round(H * scale)), 1), max(int(round(W * scale)), 1)
+    seen = np.zeros(len(V), bool)
+    for Ki, T in zip(K, w2c):
+        xc = V @ T[:3, :3].T + T[:3, 3]  # [P,3] camera frame
+        z = xc[:, 2]
+        uv = (xc @ Ki.T)[:, :2] / np.clip(z, 1e-9, None)[:, None] * scale
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        idx = np.flatnonzero(ok)
+        pix = uv[idx, 1].astype(int) * w + uv[idx, 0].astype(int)
+        zbuf = np.full(h * w, np.inf)
+        np.minimum.at(zbuf, pix, z[idx])
+        zbuf = minimum_filter(zbuf.reshape(h, w), size=3, mode="nearest").reshape(-1)
+        footprint = z[idx] / (0.5 * (Ki[0, 0] + Ki[1, 1]) * scale)  # world size of a z-buffer pixel
+        seen[idx[z[idx] <= zbuf[pix] + depth_tol_px * footprint]] = True
+    out = mesh.copy()
+    out.update_faces(seen[mesh.faces].all(1))
+    out.remove_unreferenced_vertices()
+    return out
+
+
 def extract_mesh(sdf_fn, resolution: int = 256, radius: float = 1.0, keep_components: int = 1,
                  level: float = 0.0, lo=None, hi=None):
     """SDF -> grid -> marching cubes -> largest component(s). Returns trimesh.Trimesh."""
@@ -115,10 +149,26 @@ def _look_rotation(forward: np.ndarray, up=np.array([0.0, 0.0, 1.0])) -> np.ndar
     z = forward / np.linalg.norm(forward)
     if abs(np.dot(z, up)) > 0.99:
         up = np.array([0.0, 1.0, 0.0])
-    x = np.cross(z, -up)
+    x = np.cross(-up, z)  # OpenCV-like: x right, y down the image
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return np.stack([x, y, z])
+
+
+def preview_directions(w2c, n: int = 3) -> tuple[list, np.ndarray]:
+    """Viewing directions of ``n`` of the cameras ``w2c`` [N,4,4] spread across their azimuths, and
+    their mean image-up vector: previews then show the surface the cameras saw, upright."""
+    R = np.asarray(w2c, np.float64)[:, :3, :3]
+    forward = R[:, 2, :]  # camera +z in world, [N,3]
+    up = -R[:, 1, :].mean(0)  # OpenCV y points down the image
+    up /= np.linalg.norm(up) + 1e-12
+    flat = forward - np.outer(forward @ up, up)
+    ref = flat.mean(0)
+    side = np.cross(up, ref)
+    azimuth = np.arctan2(flat @ side, flat @ ref)
+    order = np.argsort(azimuth)
+    picks = order[np.round(np.linspace(0.1, 0.9, n) * (len(order) - 1)).astype(int)]
+    return [forward[i] for i in picks], up
 
 
 def render_preview(mesh, size: int = 320, directions=None, up=None) -> np.ndarray:

@@ -1,7 +1,7 @@
 """mesh: the final model's surface, and the export of the method's result.
 
 SDF on a grid inside the unit sphere -> marching cubes -> largest component(s) -> culled by the
-training views' dilated masks (when masks exist). Output frame: the normalised object frame the
+training views' dilated masks (when masks exist) -> cropped to the surface some training view sees. Output frame: the normalised object frame the
 method built (anchors' points median-centred, robust radius `anchors.gauge_radius`); the mesh
 (``mesh.ply``) and the poses (``colmap/`` text model, ``poses.zarr``) are both in it.
 """
@@ -26,8 +26,8 @@ def run(ctx) -> None:
     trainer = evaluation.trainer_from_checkpoint(final / "model.pt", posefree.subset_views(views, ids, w2c),
                                                  ctx.section("run").device)
     masks = None if views.masks is None else views.masks[ids]
-    mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks)
-    evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params)
+    mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3])
+    evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params, w2c=w2c[ids])
     io.save_arrays(ctx.out / "poses.zarr", {"w2c": w2c, "placed": placed}, chunk_first=False)
     h, w = views.images.shape[1:3]
     evaluation.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c, w, h, valid=placed)

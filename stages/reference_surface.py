@@ -59,8 +59,8 @@ def run(ctx) -> None:
     mp = ctx.section("meshing")
     train_ids = np.flatnonzero(~held)
     masks = None if views.masks is None else views.masks[train_ids]
-    mesh = evaluation.make_mesh(trainer, mp, views.K[train_ids], w2c[train_ids], masks)
-    evaluation.save_mesh_with_preview(mesh, ctx.out, mp)
+    mesh = evaluation.make_mesh(trainer, mp, views.K[train_ids], w2c[train_ids], masks, views.images.shape[1:3])
+    evaluation.save_mesh_with_preview(mesh, ctx.out, mp, w2c=w2c[train_ids])
     nvs = evaluation.novel_views(trainer, views, np.flatnonzero(held), w2c, ctx.out / "novel_views", ctx.progress)
     rays = summary["steps"] * tp.batch_rays
     io.save_json(ctx.out / "reference.json", {

@@ -10,7 +10,7 @@ import torch
 from manifoldneus.cameras import look_at_w2c
 from manifoldneus.field import FieldBase, FieldParams, make_field
 from manifoldneus.losses import LossParams, compute_losses
-from manifoldneus.meshing import cull_by_masks, extract_mesh, render_preview
+from manifoldneus.meshing import cull_by_masks, cull_unseen, extract_mesh, preview_directions, render_preview
 from manifoldneus.metrics import chamfer, psnr, ssim
 from manifoldneus.rays import camera_rays, pixel_grid, sphere_bounds
 from manifoldneus.render import Background, RenderParams, SDFCache, render_image, render_rays
@@ -104,6 +104,34 @@ def test_marching_cubes_sphere_radius():
     masks[0, :, :24] = True
     culled = cull_by_masks(mesh, K, W, masks, dilation=0, rule="any")
     assert 0.3 * len(mesh.faces) < len(culled.faces) < 0.7 * len(mesh.faces)
+
+
+def test_cull_unseen_keeps_the_visible_cap():
+    r, dist = 0.6, 3.0
+    mesh = extract_mesh(lambda x: np.linalg.norm(x, axis=1) - r, resolution=64)
+    K, W = ring_cameras(1, dist=dist, f=60.0, size=48, elev=0.0)
+    seen = cull_unseen(mesh, K, W, (48, 48), size=48)
+    eye = -W[0][:3, :3].T @ W[0][:3, 3]
+    cos = seen.vertices @ eye / (r * dist)
+    # a sphere of radius r seen from distance d shows the cap cos(angle to the eye) > r / d
+    assert cos.min() > r / dist - 0.1
+    cap_area = 0.5 * (1 - r / dist)  # fraction of the sphere's area
+    # most of the cap stays (grazing rim pixels at this 24-px-wide sphere are the conservative loss)
+    assert 0.7 * cap_area < len(seen.faces) / len(mesh.faces) < cap_area + 0.02
+    # two opposite cameras see both caps
+    K2, W2 = ring_cameras(2, dist=dist, f=60.0, size=48, elev=0.0)
+    both = cull_unseen(mesh, K2, W2, (48, 48), size=48)
+    assert 0.7 * 2 * cap_area < len(both.faces) / len(mesh.faces) < 2 * cap_area + 0.04
+
+
+def test_preview_directions_follow_the_cameras():
+    K, W = ring_cameras(12, elev=0.5)
+    directions, up = preview_directions(W[:7])  # cameras on half the ring
+    forward = W[:7, 2, :3]
+    assert len(directions) == 3
+    for d in directions:
+        assert np.isclose(np.abs(forward @ d).max(), 1.0)  # each is one camera's viewing direction
+    assert up @ np.array([0, 0, 1.0]) > 0.8  # the ring's world up
 
 
 def test_chamfer_known_sets():
