@@ -156,6 +156,18 @@ def _downscale(views: dict, factor: int) -> dict:
     return out
 
 
+# Arrays and lists with one entry per view, in view order: what a view subset must slice.
+PER_VIEW_KEYS = ("images", "K", "masks", "mono_depth", "mono_normal", "names", "w2c")
+
+
+def every_nth_view(data: dict, stride: int) -> dict:
+    """Views 0, stride, 2 stride, ... of a reader's output (``IngestParams.view_stride``). Views and
+    ground truth both pass through here, so they are subsampled identically."""
+    if stride == 1:
+        return data
+    return {k: v[::stride] if k in PER_VIEW_KEYS else v for k, v in data.items()}
+
+
 # ---------------------------------------------------------------------------- views
 
 
@@ -171,6 +183,7 @@ def read_views(ref: SceneRef, p) -> dict:
         reader = {"monosdf": _monosdf_views, "idr": _idr_views, "colmap": _colmap_views, "images": _plain_views}[layout]
         views = reader(ref.path, p)
         views["layout"] = layout
+    views = every_nth_view(views, p.view_stride)
     if not p.load_masks:
         views.pop("masks", None)
     if not p.load_priors:
@@ -317,8 +330,14 @@ def read_ground_truth(ref: SceneRef, p) -> dict | None:
     """GT poses in the object-normalised frame, or None when the scene has none.
 
     Returns ``{"w2c": [N,4,4], "normalization": [4,4], "units": str}`` (+ ``surface_points`` for
-    synthetic scenes). ``normalization`` maps the normalised frame to the data's world.
+    synthetic scenes). ``normalization`` maps the normalised frame to the data's world, which is
+    that of all the views even when ``p.view_stride`` keeps only some of them.
     """
+    gt = _ground_truth_all_views(ref, p)
+    return None if gt is None else every_nth_view(gt, p.view_stride)
+
+
+def _ground_truth_all_views(ref: SceneRef, p) -> dict | None:
     if ref.kind == "synthetic":
         from manifoldneus import synthetic
 

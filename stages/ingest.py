@@ -19,6 +19,9 @@ class Params:
     layout: str = param("auto", "Input layout; auto detects it",
                         choices=["auto", "monosdf", "idr", "colmap", "images"])
     downscale: int = param(1, "Integer factor to shrink images (and K, masks, priors) by", lo=1, hi=16)
+    view_stride: int = param(1, "Keep every n-th view only (views 0, n, 2n, ...; ground truth alike): "
+                                "the sparse-view settings of supplement Sec. 4.4 (2, 3, 5 -> 25, 17, 10 of 49)",
+                             lo=1, hi=100)
     load_masks: bool = param(True, "Read foreground masks when the layout has them")
     load_priors: bool = param(True, "Read monocular depth/normal priors when the layout has them")
     intrinsics: list[float] = param([], "[fx, fy, cx, cy] for a plain image folder; empty = pycolmap's estimate")

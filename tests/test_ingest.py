@@ -120,12 +120,29 @@ def test_empty_folder_has_no_layout(tmp_path):
         views_of(tmp_path / "empty")
 
 
-def test_synthetic_through_pipeline_and_gt_apart(artifacts):
+@pytest.mark.parametrize("view_stride", [1, 2])
+def test_synthetic_through_pipeline_and_gt_apart(artifacts, view_stride):
+    from manifoldneus import synthetic
+
     pipeline.run("synthetic-3", until="ground_truth", artifacts=artifacts,
                  overrides=["ingest.synthetic_views=5", "ingest.synthetic_resolution=48",
-                            "ingest.synthetic_surface_points=1000"])
+                            "ingest.synthetic_surface_points=1000", f"ingest.view_stride={view_stride}"])
     store = pipeline.Store(artifacts, "synthetic-3")
     views_dir = store.version_dir("ingest", store.current("ingest"))
     assert "w2c" not in io.array_names(views_dir / "views.zarr")  # no pose leaks into the views
+    assert len(io.load_json(views_dir / "views.json")["names"]) == len(range(0, 5, view_stride))
     gt = io.load_arrays(store.version_dir("ground_truth", store.current("ground_truth")) / "poses.zarr")
-    assert gt["w2c"].shape == (5, 4, 4) and gt["surface_points"].shape == (1000, 3)
+    # the stages see the same subset: ingest's views and ground_truth's poses (views 0, 2, 4 for stride 2)
+    np.testing.assert_allclose(gt["w2c"], synthetic.camera_poses(5)[::view_stride])
+    assert gt["surface_points"].shape == (1000, 3)
+
+
+def test_view_stride_subsamples_views_and_ground_truth_alike(idr_folder, tiny_synthetic):
+    v = views_of(idr_folder, view_stride=2)
+    assert v["names"] == ["000", "002", "004"] and len(v["images"]) == len(v["K"]) == len(v["masks"]) == 3
+    np.testing.assert_allclose(v["K"], tiny_synthetic.K[::2], atol=1e-6)
+    assert (v["masks"] == tiny_synthetic.masks[::2]).all()
+    gt = gt_of(idr_folder, view_stride=2)
+    np.testing.assert_allclose(gt["w2c"], tiny_synthetic.w2c[::2], atol=1e-6)
+    np.testing.assert_allclose(gt["normalization"], gt_of(idr_folder)["normalization"])  # same world frame
+
