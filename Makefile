@@ -1,10 +1,12 @@
 # manifoldneus: `make all SCENE=scan24`, `make test`. Every target sets up .venv when needed.
 SCENE ?= synthetic
 STAGE ?=
+TABLE ?=
+VALUES ?=
 ARGS ?=
 PY := .venv/bin/python
 
-.PHONY: all stage test bench report clean setup status
+.PHONY: all stage test bench results report sweep clean setup status
 
 setup: .venv/.installed
 .venv/.installed: requirements.txt
@@ -26,8 +28,22 @@ status: setup
 test: setup
 	$(PY) -m pytest -q tests
 
+# the bench, then README's Results regenerated from the latest bench JSON of each scene
 bench: setup
 	$(PY) bench/bench.py --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) $(ARGS)
+	$(PY) bench/results_md.py
+
+results: setup
+	$(PY) bench/results_md.py
+
+report: setup
+	$(PY) bench/report.py --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) $(ARGS)
+
+# the supplement's experiments (Tables A3-A6, Fig. A7, Sec. 4.4 sparse views) on the pipeline's cache
+sweep: setup
+	@test -n "$(TABLE)" || (echo "usage: make sweep TABLE=A3|A4|A5|A6|A7|sparse SCENE=<scene> [VALUES='0.65 0.5']"; exit 2)
+	$(PY) bench/sweep.py $(TABLE) --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) \
+		$(if $(VALUES),--values $(VALUES)) $(ARGS)
 
 clean:
 	rm -rf artifacts .pytest_cache

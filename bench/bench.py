@@ -152,9 +152,10 @@ def pose_errors(summary: dict) -> dict:
 def neural_scores(evaluate_dir: Path, units: str | None) -> dict:
     """Final-round pose errors, Chamfer and held-out novel views from `evaluation.json`."""
     ev = io.load_json(evaluate_dir / "evaluation.json")
-    if not ev.get("poses"):
+    scored = [r for r in ev.get("poses", []) if "summary" in r]  # rounds with < 3 views are not scored
+    if not scored or "summary" not in ev["poses"][-1]:
         return {}
-    final = ev["poses"][-1]
+    final = scored[-1]
     out = {"units": units, "n_valid": final["n_views"], "n_views": len(final["per_view"]),
            "pose_round": final["label"], **pose_errors(final["summary"])}
     if "geometry" in ev:

@@ -73,8 +73,13 @@ def run(ctx) -> None:
     units = gt_meta["units_per_scene_unit"]
     # --- poses per round
     rows = []
+    final_res = None
     for label, r in _rounds(ctx):
         valid = r["placed"].astype(bool) & (r.get("optimised", r["placed"]).astype(bool))
+        if valid.sum() < 3:  # a Sim3 needs 3 centres (e.g. K = 10 % of a sparse set)
+            ctx.log.warning("%s: only %d views, too few to align and score", label, int(valid.sum()))
+            rows.append({"label": label, "n_views": int(valid.sum()), "skipped": "fewer than 3 views: no Sim3"})
+            continue
         res = pose_metrics.evaluate_poses(r["w2c"], gt["w2c"], valid=valid, units_scale=units)
         rows.append({"label": label, "summary": res["summary"], "n_views": res["n_valid"],
                      "per_view": pose_metrics.json_summary(res, names)["per_view"]})
@@ -83,7 +88,11 @@ def run(ctx) -> None:
                      gt_meta["units"])
         final_res = res
     report["poses"] = rows
-    plot_rounds(rows, ctx.out / "pose_error_rounds.png")
+    plot_rounds([r for r in rows if "summary" in r], ctx.out / "pose_error_rounds.png")
+    if final_res is None or "summary" not in rows[-1]:
+        ctx.log.warning("the final round could not be scored: no geometry or novel-view evaluation")
+        io.save_json(ctx.out / "evaluation.json", report)
+        return
     pose_metrics.plot_cameras(final_res["w2c_aligned"], gt["w2c"], ctx.out / "cameras.png", valid=final_res["valid"],
                               title=f"{ctx.scene}: final poses (Sim3-aligned) vs GT")
     # --- geometry
@@ -132,8 +141,10 @@ def run(ctx) -> None:
     ctx.metrics.update(
         rot_err_deg_mean=fin["rot_err_deg"]["mean"], center_err_units_mean=fin["center_err_units"]["mean"],
         pre_r_deg_mean=fin["pre_r_deg"]["mean"], pre_t_deg_mean=fin["pre_t_deg"]["mean"],
-        anchors_rot_err_deg_mean=rows[1]["summary"]["rot_err_deg"]["mean"],
-        initial_rot_err_deg_mean=rows[0]["summary"]["rot_err_deg"]["mean"], units=gt_meta["units"])
+        units=gt_meta["units"])
+    for row, key in ((rows[0], "initial"), (rows[1], "anchors")):
+        if "summary" in row:
+            ctx.metrics[f"{key}_rot_err_deg_mean"] = row["summary"]["rot_err_deg"]["mean"]
     if "geometry" in report:
         ctx.metrics.update(chamfer_units=report["geometry"]["chamfer_units"],
                            chamfer_pct_bbox=report["geometry"]["chamfer_pct_of_bbox_diagonal"])

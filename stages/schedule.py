@@ -4,7 +4,8 @@ Greedy picking of anchors (ceil(K% n) views, starting from the view of largest c
 rounds of M views (the last round takes the rest) by ``S_i = alpha L_i + (1 - alpha) C_i``;
 variants: coverage ``SE`` (spectral) | ``E`` (rows of W), strategy ``mavos`` | ``fps`` | ``uniform``.
 Every definition (normalisation, ties, S~, what uniform/fps record): ``manifoldneus/mavos.py``.
-Views outside the largest co-visibility component are not scheduled (role ``excluded``).
+Views outside the largest co-visibility component and the views held out for novel-view evaluation
+(section `split`) are not scheduled (role ``excluded``): K % counts the views that are trained.
 This stage never reads ground truth: its figure is drawn in spectral coordinates.
 
 Outputs:
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from manifoldneus import io, mavos
-from manifoldneus.config import param
+from manifoldneus.config import holdout_mask, param
 
 
 @dataclass
@@ -46,7 +47,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "covisibility", "spectral")
-SECTIONS = ("schedule",)
+SECTIONS = ("schedule", "split")
 OUTPUTS = ("schedule.zarr", "schedule.json", "schedule.png")
 
 ROUND_COLOURS = ["#8c510a", "#1b9e77", "#969696", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d"]
@@ -145,15 +146,18 @@ def run(ctx) -> None:
     if len(names) != N or len(phi) != N:
         raise ValueError(f"view count mismatch: {len(names)} names, W {W.shape}, phi {phi.shape}")
 
+    held_out = holdout_mask(N, ctx.section("split"))
     sched = mavos.mavos_schedule(
         W, phi, c, strategy=p.strategy, alpha=p.alpha, anchor_percent=p.anchor_percent,
-        successors_per_round=p.successors_per_round, coverage=p.coverage, schedulable=in_comp,
+        successors_per_round=p.successors_per_round, coverage=p.coverage, schedulable=in_comp & ~held_out,
         s_tilde_from=p.s_tilde_from,
     )
-    excluded = np.flatnonzero(~in_comp).tolist()
-    if excluded:
+    excluded = np.flatnonzero(~in_comp | held_out).tolist()
+    outside = np.flatnonzero(~in_comp).tolist()
+    if outside:
         ctx.log.warning("views %s are outside the largest co-visibility component: not scheduled (role 'excluded'); "
-                        "later stages must skip them", [names[i] for i in excluded])
+                        "later stages must skip them", [names[i] for i in outside])
+    ctx.log.info("%d views held out for novel-view evaluation are not scheduled", int(held_out.sum()))
     anchors = sched.anchors
     connected = mavos.is_connected_subset(W, anchors)
     n_clusters = len(mavos.connected_components(W[np.ix_(anchors, anchors)])) if anchors else 0
@@ -190,6 +194,7 @@ def run(ctx) -> None:
         "anchors_connected_definition": "the subgraph of W (edges n_ij > 0) induced by the anchors is connected; "
                                         "anchor_bottleneck_matches = weakest link of its maximum spanning tree",
         "excluded_views": excluded,
+        "held_out_views": np.flatnonzero(held_out).tolist(),
         "picks": sched.picks,
         "s_tilde_definition": ("S at pick time, min-max normalised over all views optimised in that round "
                                "(views scheduled in rounds 0..r); ties -> 1; uniform -> 1") if p.s_tilde_from == "score"

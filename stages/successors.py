@@ -30,6 +30,8 @@ class Params:
                            "from the model, METHOD.md) or 'matches' (incremental SfM on the verified matches of all "
                            "views so far, Sim3-aligned to the optimised poses)", choices=["depth", "matches"])
     pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
+    max_rounds: int = param(0, "Stop after this many successor rounds (0 = all); later rounds' views stay unplaced "
+                            "(the sweeps of bench/sweep.py only read round 1)", lo=0)
     pnp_min_inliers: int = param(12, "Fewer PnP inliers -> fallback to the best-matching optimised neighbour", lo=4)
 
 
@@ -59,6 +61,9 @@ def run(ctx) -> None:
     inputs = posefree.load_inputs(ctx)
     rounds = inputs.schedule["round"]
     n_rounds = int(rounds.max()) if (rounds >= 0).any() else 0
+    if p.max_rounds and n_rounds > p.max_rounds:
+        ctx.log.info("successors.max_rounds = %d: rounds %d..%d are not run", p.max_rounds, p.max_rounds + 1, n_rounds)
+        n_rounds = p.max_rounds
     prev_dir = ctx.input("anchors") / "round_0"
     prev = posefree.load_round(prev_dir)
     carry = {k: v for k, v in torch.load(prev_dir / "model.pt", map_location="cpu", weights_only=False).items()

@@ -43,6 +43,7 @@ def test_rounds_and_evaluation(tiny_run):
     succ = current(artifacts, "successors")
     rounds = sorted(p.name for p in succ.glob("round_*"))
     assert len(rounds) == sched["n_rounds"] - 1 >= 1
+    assert sched["held_out_views"] == [0, 8, 16] and not set(sched["anchors"]) & {0, 8, 16}  # never scheduled
     final = io.load_arrays(succ / "final" / "poses.zarr")
     held = np.zeros(20, bool)
     held[::8] = True
