@@ -75,3 +75,13 @@ def test_neus_barf_preset_reuses_the_front_end(tiny_run):
     assert [r["label"] for r in ev["poses"]] == ["initial", "anchors"]
     # the default run's pointers did not move
     assert pipeline.status("synthetic", overrides=TINY, artifacts=artifacts)["evaluate"][0] == "fresh"
+
+
+def test_max_rounds_stops_after_the_first_successor_round(tiny_run):
+    artifacts, _ = tiny_run
+    report = pipeline.run("synthetic", overrides=TINY + ["successors.max_rounds=1"], until="successors",
+                          artifacts=artifacts)
+    assert report["anchors"] == "reused" and report["successors"] == "computed"
+    succ = current(artifacts, "successors")
+    assert sorted(p.name for p in succ.glob("round_*")) == ["round_1"]
+    assert (succ / "final").resolve().name == "round_1"
