@@ -152,10 +152,9 @@ def pose_errors(summary: dict) -> dict:
 def neural_scores(evaluate_dir: Path, units: str | None) -> dict:
     """Final-round pose errors, Chamfer and held-out novel views from `evaluation.json`."""
     ev = io.load_json(evaluate_dir / "evaluation.json")
-    scored = [r for r in ev.get("poses", []) if "summary" in r]  # rounds with < 3 views are not scored
-    if not scored or "summary" not in ev["poses"][-1]:
+    final = (ev.get("poses") or [{}])[-1]
+    if "summary" not in final:  # no rounds, or a final round of < 3 views (not scored)
         return {}
-    final = scored[-1]
     out = {"units": units, "n_valid": final["n_views"], "n_views": len(final["per_view"]),
            "pose_round": final["label"], **pose_errors(final["summary"])}
     if "geometry" in ev:
