@@ -1,7 +1,7 @@
 """Trainer of the neural surface: random ray batches over training views, Adam with linear
 warm-up then cosine decay, optional learnable per-view se(3) pose corrections (AdamW),
-checkpoint save / resume, and NaN / divergence rollback to the last good state with a lowered
-learning rate.
+checkpoint save / resume, and rollback to the last good state (NaN, loss divergence, a learned
+pose that jumps) with a lowered learning rate.
 
 Input is plain arrays (:class:`Views`): images [N,H,W,3], K [N,3,3], w2c [N,4,4] and optional
 masks [N,H,W], mono_depth [N,H,W], mono_normal [N,H,W,3] (unit, OpenCV camera frame).
@@ -64,6 +64,8 @@ class TrainParams:
     rollback_lr_factor: float = param(0.5, "Multiply the lr by this after a NaN/divergence rollback", lo=0.0, hi=1.0)
     max_rollbacks: int = param(5, "Give up after this many rollbacks", lo=0)
     diverge_factor: float = param(20.0, "A loss above this times its running mean counts as divergence", lo=1.0)
+    pose_jump_deg: float = param(30.0, "A learned pose that turns by more than this between two rollback states (or "
+                                 "becomes non-finite) counts as divergence (0 = no check)", lo=0.0)
     log_every: int = param(100, "Log every N iterations", lo=1)
     seed: int = param(0, "Random seed", lo=0)
     threads: int = param(0, "torch CPU threads (0 = leave torch's default)", lo=0)
@@ -433,8 +435,32 @@ class Trainer:
             self.pose_opt.step()
         self.step += 1
         if self.step % self.tp.ckpt_every == 0:
+            jump = self.pose_jump()
+            if jump is not None:
+                self._rollback(jump)
+                return {"rollback": True}
             self._snapshot()
         return {"loss": lv, "terms": terms, "status": status}
+
+    def pose_jump(self) -> str | None:
+        """Why the learned poses count as diverged since the last rollback state, or None."""
+        if self.pose_opt is None or self._good_state is None:
+            return None
+        with torch.no_grad():
+            if not bool(torch.isfinite(self.xi).all()):
+                return "non-finite pose correction"
+            if self.tp.pose_jump_deg <= 0:
+                return None
+            now = self.poses()[:, :3, :3]  # [N,3,3]
+            before = apply_correction(self._good_state["xi"] * self.pose_mask, self.w2c_init)[:, :3, :3]
+            cos = (((now @ before.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+            turn = torch.rad2deg(torch.arccos(cos))  # [N]
+        worst = int(turn.argmax())
+        if float(turn[worst]) > self.tp.pose_jump_deg:
+            name = self.views.names[worst] if worst < len(self.views.names) else str(worst)
+            return (f"pose of view {name} turned {float(turn[worst]):.1f} deg in {self.tp.ckpt_every} iterations "
+                    f"(pose_jump_deg = {self.tp.pose_jump_deg:g})")
+        return None
 
     def train(self, iters: int | None = None, time_budget_s: float | None = None, callback=None) -> dict:
         """Train until ``iters`` (default ``train_p.iters``) total iterations or the time budget.

@@ -1,6 +1,7 @@
 """Fast CPU tests of the neural surface core (rays, rendering, meshing, metrics, losses, trainer)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -231,6 +232,28 @@ def test_rollback_on_injected_nan():
         assert torch.isfinite(p).all()
     tr.train(iters=20)
     assert tr.step == 20
+
+
+def test_pose_jump_rolls_back_to_the_last_good_state():
+    views = synthetic_views(n=4, size=16)
+    fp, rp, tp = tiny_params(40)
+    tp = dataclasses.replace(tp, learn_poses=True, pose_lr=1e-3, pose_jump_deg=10.0)
+    tr = Trainer(views, fp, rp, LossParams(), tp)
+    for _ in range(12):
+        tr.train_step()
+    good_xi = tr._good_state["xi"].clone()  # the state of step 10
+    with torch.no_grad():
+        tr.xi[2, 3:] += np.radians(25.0) / np.sqrt(3)  # view 2 turns by 25 deg
+    results = [tr.train_step() for _ in range(8)]  # reaches step 20: the check
+    assert results[-1].get("rollback") and tr.step == 10 and tr.rollbacks == 1
+    assert "view 2 turned" in tr.events[-1]["reason"] and tr.lr_scale == pytest.approx(0.5)
+    assert torch.equal(tr.xi.detach(), good_xi)
+    # a small, honest pose update is no jump
+    tr.train(iters=30)
+    assert tr.step == 30 and tr.rollbacks == 1
+    with torch.no_grad():
+        tr.xi[1, 0] = float("nan")
+    assert tr.pose_jump() == "non-finite pose correction"
 
 
 def test_band_weights_interface():
