@@ -466,7 +466,9 @@ def main(argv=None) -> int:
     ap.add_argument("--all-rounds", action="store_true",
                     help="run every successor round (default: stop after round 1, all the tables read; half the time)")
     args = ap.parse_args(argv)
-    overrides = args.overrides if args.all_rounds else ["successors.max_rounds=1", *args.overrides]
+    # round 1 then is the last round run; final_iters=0 keeps it the length of any successor round
+    stop = ["successors.max_rounds=1", "successors.final_iters=0"]
+    overrides = args.overrides if args.all_rounds else [*stop, *args.overrides]
     try:
         result = run_sweep(args.table, args.scene, args.values, overrides, args.artifacts, args.profile,
                            args.data_root, args.out)

@@ -21,6 +21,8 @@ class Params:
     """Section `successors` of params.yaml."""
 
     iters: int = param(1000, "Iterations of each successor round", lo=1)
+    final_iters: int = param(0, "Iterations of the last round run (0 = `iters`): the round that fits the field and "
+                             "poses of every view, whose result is final", lo=0)
     pose_lr: float = param(5e-3, "Peak AdamW lr of the pose corrections (supplement: 5e-3)", lo=0.0)
     pose_start_frac: float = param(0.2, "Poses stay frozen for this fraction of the iterations (the field fits first)",
                                    lo=0.0, hi=1.0)
@@ -106,7 +108,8 @@ def run(ctx) -> None:
             w2c[v] = pose
             placed[v] = True
         ids = np.flatnonzero(placed)
-        rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=p.iters,
+        iters = p.final_iters if r == n_rounds and p.final_iters else p.iters
+        rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters,
                              pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
                              carry=carry, pose_start_frac=p.pose_start_frac)
         summary = rnd.run(ctx, f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt")

@@ -43,6 +43,7 @@ def test_rounds_and_evaluation(tiny_run):
     succ = current(artifacts, "successors")
     rounds = sorted(p.name for p in succ.glob("round_*"))
     assert len(rounds) == sched["n_rounds"] - 1 >= 1
+    assert all(io.load_json(succ / r / "round.json")["train"]["steps"] == 30 for r in rounds)  # successors.iters
     assert sched["held_out_views"] == [0, 8, 16] and not set(sched["anchors"]) & {0, 8, 16}  # never scheduled
     final = io.load_arrays(succ / "final" / "poses.zarr")
     held = np.zeros(20, bool)
@@ -79,9 +80,10 @@ def test_neus_barf_preset_reuses_the_front_end(tiny_run):
 
 def test_max_rounds_stops_after_the_first_successor_round(tiny_run):
     artifacts, _ = tiny_run
-    report = pipeline.run("synthetic", overrides=TINY + ["successors.max_rounds=1"], until="successors",
-                          artifacts=artifacts)
+    report = pipeline.run("synthetic", overrides=TINY + ["successors.max_rounds=1", "successors.final_iters=45"],
+                          until="successors", artifacts=artifacts)
     assert report["anchors"] == "reused" and report["successors"] == "computed"
     succ = current(artifacts, "successors")
     assert sorted(p.name for p in succ.glob("round_*")) == ["round_1"]
     assert (succ / "final").resolve().name == "round_1"
+    assert io.load_json(succ / "round_1" / "round.json")["train"]["steps"] == 45  # the last round run is final
