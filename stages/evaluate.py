@@ -83,9 +83,11 @@ def run(ctx) -> None:
         res = pose_metrics.evaluate_poses(r["w2c"], gt["w2c"], valid=valid, units_scale=units)
         rows.append({"label": label, "summary": res["summary"], "n_views": res["n_valid"],
                      "per_view": pose_metrics.json_summary(res, names)["per_view"]})
-        ctx.log.info("%-9s %2d views: rotation %.3f deg, centre %.3f %s (mean)", label, res["n_valid"],
-                     res["summary"]["rot_err_deg"]["mean"], res["summary"]["center_err_units"]["mean"],
-                     gt_meta["units"])
+        mean = {k: res["summary"][k]["mean"] for k in ("rot_err_deg", "center_err_units")}
+        # None: no finite error (e.g. identity init: every centre alike, no Sim3 scale)
+        mean = {k: "n/a" if v is None else f"{v:.3f}" for k, v in mean.items()}
+        ctx.log.info("%-9s %2d views: rotation %s deg, centre %s %s (mean)", label, res["n_valid"],
+                     mean["rot_err_deg"], mean["center_err_units"], gt_meta["units"])
         final_res = res
     report["poses"] = rows
     plot_rounds([r for r in rows if "summary" in r], ctx.out / "pose_error_rounds.png")
