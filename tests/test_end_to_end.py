@@ -11,7 +11,7 @@ from manifoldneus import io
 TINY = [
     "ingest.synthetic_views=20", "ingest.synthetic_resolution=128", "ingest.synthetic_surface_points=4000",
     "train.iters=40", "train.image_size=32", "train.batch_rays=256", "train.warmup=5", "train.log_every=10",
-    "anchors.iters=40", "successors.iters=30",
+    "anchors.iters=40", "successors.iters=30", "successors.final_iters=40",
     "field.grid_levels=3", "field.grid_max_res=32", "render.cache_res=32",
     "meshing.resolution=48", "evaluate.chamfer_points=4000", "schedule.successors_per_round=4",
 ]
@@ -43,7 +43,8 @@ def test_rounds_and_evaluation(tiny_run):
     succ = current(artifacts, "successors")
     rounds = sorted(p.name for p in succ.glob("round_*"))
     assert len(rounds) == sched["n_rounds"] - 1 >= 1
-    assert all(io.load_json(succ / r / "round.json")["train"]["steps"] == 30 for r in rounds)  # successors.iters
+    steps = [io.load_json(succ / f"round_{r}" / "round.json")["train"]["steps"] for r in range(1, len(rounds) + 1)]
+    assert steps == [30] * (len(rounds) - 1) + [40]  # successors.iters, then final_iters for the last round
     assert sched["held_out_views"] == [0, 8, 16] and not set(sched["anchors"]) & {0, 8, 16}  # never scheduled
     final = io.load_arrays(succ / "final" / "poses.zarr")
     held = np.zeros(20, bool)
