@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field as dc_field
 import numpy as np
 import torch
 
-from manifoldneus.cameras import apply_correction
+from manifoldneus.cameras import apply_correction, rotation_angle_deg
 from manifoldneus.config import param
 from manifoldneus.field import FieldParams, make_field
 from manifoldneus.gate import barf_weights
@@ -453,12 +453,11 @@ class Trainer:
                 return None
             now = self.poses()[:, :3, :3]  # [N,3,3]
             before = apply_correction(self._good_state["xi"] * self.pose_mask, self.w2c_init)[:, :3, :3]
-            cos = (((now @ before.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
-            turn = torch.rad2deg(torch.arccos(cos))  # [N]
+            turn = rotation_angle_deg((now @ before.transpose(-1, -2)).double().cpu().numpy())  # [N]
         worst = int(turn.argmax())
-        if float(turn[worst]) > self.tp.pose_jump_deg:
+        if turn[worst] > self.tp.pose_jump_deg:
             name = self.views.names[worst] if worst < len(self.views.names) else str(worst)
-            return (f"pose of view {name} turned {float(turn[worst]):.1f} deg in {self.tp.ckpt_every} iterations "
+            return (f"pose of view {name} turned {turn[worst]:.1f} deg in {self.tp.ckpt_every} iterations "
                     f"(pose_jump_deg = {self.tp.pose_jump_deg:g})")
         return None
 
