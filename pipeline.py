@@ -11,13 +11,15 @@
 Artifact layout: ``artifacts/<scene>/<stage>/<fingerprint>/`` (files + ``manifest.json`` +
 ``log.txt``) and ``artifacts/<scene>/<stage>/current`` (symlink to the version in use).
 A fingerprint hashes the stage's resolved parameter sections, the source of the stage module
-and of every ``manifoldneus`` module it uses, and the fingerprints of its upstream stages
+and of every ``manifoldneus``/``stages`` module it can import (module level or inside a function),
+and the fingerprints of its upstream stages
 (plus, for ``ingest``, a signature of the input files). Versions are written to a temporary
 folder and renamed when complete, so an interrupted run never leaves a version that looks done.
 """
 from __future__ import annotations
 
 import argparse
+import ast
 import contextlib
 import dataclasses
 import fcntl
@@ -150,23 +152,60 @@ def resolve_params(
 # ---------------------------------------------------------------------------- fingerprints
 
 
+OWN_PACKAGES = ("manifoldneus", "stages")
+
+
+def _module_file(name: str) -> Path | None:
+    """The source file of one of our own modules (``a.b`` -> ``a/b.py`` or ``a/b/__init__.py``), else None."""
+    if name.split(".")[0] not in OWN_PACKAGES:
+        return None
+    base = ROOT.joinpath(*name.split("."))
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def _imported_names(path: Path, module_name: str) -> set[str]:
+    """Every module name an import statement in the file may refer to, wherever the statement is
+    (module level or inside a function body): read from the syntax tree, not from what is loaded."""
+    is_package = path.name == "__init__.py"
+    package = module_name if is_package else module_name.rpartition(".")[0]
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - node.level + 1])
+                source = f"{base}.{node.module}" if node.module else base
+            else:
+                source = node.module or ""
+            names.add(source)
+            # `from pkg import mod` names a module; `from mod import func` does not (no such file).
+            names.update(f"{source}.{alias.name}" for alias in node.names)
+    return names
+
+
 def _code_files(module: types.ModuleType) -> list[Path]:
-    """Source files of the module and of every ``manifoldneus``/``stages`` module it uses (transitively)."""
+    """Source files of the stage module and of every ``manifoldneus``/``stages`` module it can reach
+    through imports, transitively, including imports inside function bodies (an AST pass, so a
+    lazily imported module is covered before it has ever been loaded)."""
     seen: dict[str, Path] = {}
-    todo = [module]
+    todo = [module.__name__]
     while todo:
-        mod = todo.pop()
-        if mod.__name__ in seen or not getattr(mod, "__file__", None):
+        name = todo.pop()
+        path = _module_file(name)
+        if name in seen or path is None:
             continue
-        seen[mod.__name__] = Path(mod.__file__)
-        for value in vars(mod).values():
-            name = value.__name__ if isinstance(value, types.ModuleType) else getattr(value, "__module__", None)
-            if not isinstance(name, str) or not name.startswith(("manifoldneus", "stages.")):
-                continue
-            dep = sys.modules.get(name)
-            if dep is not None:
-                todo.append(dep)
-    return [seen[k] for k in sorted(seen)]
+        seen[name] = path
+        # A submodule also runs its packages' __init__; `stages/__init__.py` is the DAG's registry
+        # (its shape is in the upstream fingerprints, its shared sections are hashed by value).
+        todo.extend(p for p in (".".join(name.split(".")[:i]) for i in range(1, name.count(".") + 1))
+                    if p != "stages")
+        todo.extend(_imported_names(path, name))
+    return sorted(set(seen.values()))
 
 
 def code_hash(stage: Stage) -> str:

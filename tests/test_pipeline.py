@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 
@@ -92,8 +93,30 @@ def test_code_change_makes_stage_stale(artifacts, monkeypatch):
 
 def test_code_hash_covers_package_modules():
     stages = pipeline.load_stages()
-    files = {p.name for p in pipeline._code_files(stages["ingest"].module)}
-    assert {"ingest.py", "scenes.py", "io.py", "config.py", "cameras.py"} <= files
+    files = {p.relative_to(pipeline.ROOT).as_posix() for p in pipeline._code_files(stages["ingest"].module)}
+    assert {"stages/ingest.py", "manifoldneus/scenes.py", "manifoldneus/io.py", "manifoldneus/config.py",
+            "manifoldneus/cameras.py"} <= files
+    # imported only inside functions (scenes.py, evaluate.py): still the stages' code
+    assert "manifoldneus/synthetic.py" in files
+    evaluate = {p.name for p in pipeline._code_files(stages["evaluate"].module)}
+    assert "synthetic.py" in evaluate
+    # ...but not modules the stage never reaches, nor the stage registry
+    assert "train.py" not in files and "stages/__init__.py" not in files
+
+
+def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_path, monkeypatch):
+    """scenes.py imports synthetic.py inside a function: an edit there must reach ingest's fingerprint."""
+    copy = tmp_path / "src"
+    for folder in ("manifoldneus", "stages"):
+        shutil.copytree(pipeline.ROOT / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr(pipeline, "ROOT", copy)
+    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
+
+    generator = copy / "manifoldneus" / "synthetic.py"
+    generator.write_text(generator.read_text() + "\n# an edit to the scene generator\n")
+    st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert st["ingest"][0] == "stale" and any("code" in r for r in st["ingest"][1])
 
 
 @pytest.mark.parametrize(
