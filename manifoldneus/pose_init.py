@@ -1008,6 +1008,8 @@ def place_by_pnp(
         return None, 0
     K = np.asarray(K, np.float64)
     flags = cv2.SOLVEPNP_EPNP if flags is None else flags
+    # RANSAC draws from OpenCV's global generator: seed it from the input, so one input gives one pose
+    cv2.setRNGSeed(len(X) * 7919 + int(1e3 * abs(float(X[0, 0]) + float(uv[0, 0]))) % 2**31)
     try:
         okr, rvec, tvec, inl = cv2.solvePnPRansac(
             X, uv, K, None, iterationsCount=int(iterations), reprojectionError=float(reproj_px),

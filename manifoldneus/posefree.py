@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from manifoldneus import gate, io
+from manifoldneus import correspondence, gate, io
 from manifoldneus.config import holdout_mask
 from manifoldneus.train import Trainer, Views
 
@@ -89,11 +89,21 @@ class Round:
         tp = train_params(ctx, iters, pose_lr, pose_warmup_frac, learn_poses)
         gate_p = ctx.section("gate")
         s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids])
+        self.corr_p = ctx.section("correspondence")
+        self.corr = None
+        if learn_poses:
+            ms = correspondence.MatchSet(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs,
+                                         self.corr_p.holdout_frac, self.corr_p.seed)
+            self.corr = correspondence.CorrespondenceLoss(ms.to(ctx.section("run").device), self.corr_p)
+        # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
+        # correction driven by an unfitted field only moves good initial poses away.
+        self.pose_start = int(round(pose_start_frac * iters))
         self.trainer = Trainer(
             subset_views(inputs.views, self.ids, w2c_all), ctx.section("field"), ctx.section("render"),
             ctx.section("loss"), tp,
             band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,
                                                                 gate_p),
+            pose_start=self.pose_start, pose_loss=self.corr,
         )
         if carry is not None:  # the field learned so far; poses restart at zero correction
             t = self.trainer
@@ -102,14 +112,18 @@ class Round:
             if t.cache is not None and carry.get("cache") is not None:
                 t.cache.load_state_dict(carry["cache"])
         self.w2c_init = np.array(w2c_all)
-        # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
-        # correction driven by an unfitted field only moves good initial poses away.
-        self.pose_start = int(round(pose_start_frac * iters))
-        self._pose_mask = self.trainer.pose_mask.clone()
-        if self.pose_start > 0:
-            self.trainer.pose_mask.zero_()
-        self.pose_trace: list[np.ndarray] = []
-        self.grad_trace: list[np.ndarray] = []
+        # sampled every log_every steps; kept in the trainer's checkpoint so a resumed round has them all
+        self.trainer.extra_state = {"pose_trace": [], "grad_trace": []}
+        self.trainer.recorder = self._record
+        self.guard: dict = {}
+
+    @property
+    def pose_trace(self) -> list:
+        return self.trainer.extra_state["pose_trace"]
+
+    @property
+    def grad_trace(self) -> list:
+        return self.trainer.extra_state["grad_trace"]
 
     def _record(self, trainer: Trainer, info: dict) -> None:
         g = trainer.xi.grad
@@ -117,27 +131,49 @@ class Round:
         self.grad_trace.append(norms)
         self.pose_trace.append(trainer.poses_numpy())
 
+    def _guard(self, ctx, desc: str) -> dict:
+        """Held-out matches' error at the round's start and end; the starting poses come back when
+        the round made it worse by more than the tolerance (module doc of correspondence)."""
+        t = self.trainer
+        if self.corr is None:
+            return {"checked": False, "why": "poses not learned"}
+        start = self.corr.held_out_error(t.w2c_init)
+        end = self.corr.held_out_error(t.poses().detach())
+        out = {"checked": start is not None, "held_out_matches": int(self.corr.ms.held_index.numel()),
+               "start": start, "end": end, "start_median_px": self.corr.median_px(t.w2c_init),
+               "end_median_px": self.corr.median_px(t.poses().detach()), "fired": False}
+        if start is None:
+            out["why"] = "no held-out matches"
+            return out
+        if self.corr_p.guard and end > start * (1 + self.corr_p.guard_tolerance):
+            with torch.no_grad():
+                t.xi.zero_()
+            out["fired"] = True
+            ctx.log.warning("%s: the pose update raised the held-out matches' error from %.4g to %.4g (> %g %%): "
+                            "poses rolled back to the round's start", desc, start, end,
+                            100 * self.corr_p.guard_tolerance)
+        else:
+            ctx.log.info("%s: held-out matches' error %.4g -> %.4g (median %.3f -> %.3f px)", desc, start, end,
+                         out["start_median_px"], out["end_median_px"])
+        return out
+
     def run(self, ctx, desc: str, checkpoint: Path | None = None) -> dict:
         t = self.trainer
         t.checkpoint_path = checkpoint
         if checkpoint is not None and checkpoint.exists():
             t.load(checkpoint)
             ctx.log.info("%s: resumed from %s at step %d", desc, checkpoint.name, t.step)
-        if t.step >= self.pose_start:
-            t.pose_mask.copy_(self._pose_mask)
         bar = ctx.progress(total=self.iters, desc=desc, initial=t.step)
 
         def callback(trainer, info):
-            if info["step"] >= self.pose_start:
-                trainer.pose_mask.copy_(self._pose_mask)
             bar.update(info["step"] - bar.n)
             bar.set_postfix(loss=f"{info['loss']:.4f}")
-            self._record(trainer, info)
 
         started = time.time()
         summary = t.train(callback=callback)
         bar.close()
         summary["seconds"] = time.time() - started
+        summary["guard"] = self.guard = self._guard(ctx, desc)
         return summary
 
     def poses_all(self) -> np.ndarray:

@@ -11,7 +11,15 @@ Hooks for the pose-free method:
   (the MaVOS-gated BARF schedule); without it a global BARF ramp over ``c2f_iters`` applies
   (0 = all bands on from the start).
 * ``learn_poses``: poses are ``w2c = apply_correction(xi[view], w2c_init[view])`` with ``xi``
-  [N,6] learned by AdamW for ``pose_views`` (default: all training views).
+  [N,6] learned by AdamW for ``pose_views`` (default: all training views), from step
+  ``pose_start`` on (frozen before it, exactly, not rounded to the logging interval).
+* ``pose_loss(w2c [N,3,4], rng) -> scalar | None`` with a ``weight`` attribute: a term on the poses
+  alone (the verified matches' Sampson error, :mod:`manifoldneus.correspondence`), added to the
+  loss while poses are learned.
+
+Reproducibility: one seed drives every random draw (ray batches from ``self.rng``, sample jitter
+from torch's global generator); both generators' states, the loss average and the history are in
+the checkpoint, so a resumed run continues exactly as an uninterrupted one would.
 """
 from __future__ import annotations
 
@@ -181,7 +189,8 @@ class Trainer:
 
     def __init__(self, views: Views, field_p: FieldParams | None = None, render_p: RenderParams | None = None,
                  loss_p: LossParams | None = None, train_p: TrainParams | None = None, *, train_views=None,
-                 pose_views=None, band_weight_fn=None, progress=None, checkpoint_path=None, device: str | None = None):
+                 pose_views=None, band_weight_fn=None, progress=None, checkpoint_path=None, device: str | None = None,
+                 pose_start: int = 0, pose_loss=None):
         self.fp = field_p or FieldParams()
         self.rp = render_p or RenderParams()
         self.lp = loss_p or LossParams()
@@ -194,6 +203,8 @@ class Trainer:
         self.views = views.resized(self.tp.image_size)
         self.train_views = np.arange(self.views.n) if train_views is None else np.asarray(train_views, int)
         self.band_weight_fn = band_weight_fn
+        self.pose_start = int(pose_start)
+        self.pose_loss = pose_loss
         self.progress = progress
         self.checkpoint_path = checkpoint_path
         dev = self.device
@@ -230,8 +241,11 @@ class Trainer:
         self._loss_ema = None
         self._budget = 0.0
         self._t_start = None
+        self._target, self._t_train = self.tp.iters, None  # set by train()
         self.clock = time.time  # budget / schedule clock (e.g. time.process_time for CPU-time budgets)
         self.history: list[dict] = []
+        self.extra_state: dict = {}  # a caller's own per-run records, checkpointed with the trainer
+        self.recorder = None  # callable(trainer, info) at every logged step, before that step's checkpoint
         if self.masks is not None and self.tp.fg_ray_fraction > 0:
             tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
             fg = self.masks[tv].reshape(-1).nonzero()[:, 0]
@@ -263,7 +277,8 @@ class Trainer:
         """Current world-to-camera poses [N,3,4] (corrected when poses are learned)."""
         if not self.tp.learn_poses:
             return self.w2c_init
-        return apply_correction(self.xi * self.pose_mask, self.w2c_init)
+        mask = self.pose_mask if self.step >= self.pose_start else torch.zeros_like(self.pose_mask)
+        return apply_correction(self.xi * mask, self.w2c_init)
 
     def poses_numpy(self) -> np.ndarray:
         with torch.no_grad():
@@ -321,6 +336,13 @@ class Trainer:
             "params": {"field": asdict(self.fp), "render": asdict(self.rp), "loss": asdict(self.lp),
                        "train": asdict(self.tp)},
             "bg_kind": self.bg_kind,
+            "rng": self.rng.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if self.device.type == "cuda" else None,
+            "loss_ema": self._loss_ema,
+            "history": list(self.history),
+            "events": list(self.events),
+            "extra": copy.deepcopy(self.extra_state),
         }
 
     def load_state_dict(self, s: dict) -> None:
@@ -336,6 +358,15 @@ class Trainer:
         self.rollbacks = int(s.get("rollbacks", 0))
         if self.cache is not None and s.get("cache") is not None:
             self.cache.load_state_dict(s["cache"])
+        if s.get("rng") is not None:
+            self.rng.set_state(s["rng"])
+            torch.set_rng_state(s["torch_rng"])
+            if s.get("cuda_rng") is not None and self.device.type == "cuda":
+                torch.cuda.set_rng_state_all(s["cuda_rng"])
+        self._loss_ema = s.get("loss_ema")
+        self.history = list(s.get("history", []))
+        self.events = list(s.get("events", []))
+        self.extra_state = copy.deepcopy(s.get("extra", {}))
 
     def save(self, path) -> None:
         """Write a checkpoint (torch.save) that :meth:`load` resumes from."""
@@ -357,7 +388,9 @@ class Trainer:
                                      f"gave up after {self.rollbacks} rollbacks")
         bad_step = self.step
         rollbacks = self.rollbacks + 1
+        events = list(self.events)  # the record of earlier rollbacks outlives the state it restores
         self.load_state_dict(copy.deepcopy(self._good_state))
+        self.events = events
         self.rollbacks = rollbacks
         self.lr_scale *= self.tp.rollback_lr_factor
         self._good_state["lr_scale"] = self.lr_scale
@@ -408,6 +441,11 @@ class Trainer:
         out = render_rays(self.field, b["o"], b["d"], self.rp, cache=self.cache, background=self.background,
                           band_weights=bw, perturb=True, train=True, want_normals=True)
         total, terms, status = compute_losses(out, b, self.lp)
+        if self.pose_loss is not None and self.pose_opt is not None and self.step >= self.pose_start:
+            extra = self.pose_loss(self.poses(), self.rng)
+            if extra is not None:
+                terms["corr"] = float(extra.detach())
+                total = total + self.pose_loss.weight * extra
         if inject_nan:
             total = total * float("nan")
         lv = float(total.detach())
@@ -434,13 +472,22 @@ class Trainer:
         if self.pose_opt is not None:
             self.pose_opt.step()
         self.step += 1
+        info = None
+        if self.step % self.tp.log_every == 0 or self.step == self._target:
+            # recorded before the snapshot below, so a checkpoint's history includes its own step
+            info = {"step": self.step, "loss": lv, **{f"loss_{k}": v for k, v in terms.items()},
+                    "inv_s": float(self.field.inv_s().detach()), "lr": self.opt.param_groups[0]["lr"],
+                    "elapsed_s": self.clock() - (self._t_train if self._t_train is not None else self.clock())}
+            self.history.append(info)
+            if self.recorder is not None:
+                self.recorder(self, info)
         if self.step % self.tp.ckpt_every == 0:
             jump = self.pose_jump()
             if jump is not None:
                 self._rollback(jump)
                 return {"rollback": True}
             self._snapshot()
-        return {"loss": lv, "terms": terms, "status": status}
+        return {"loss": lv, "terms": terms, "status": status, "info": info}
 
     def pose_jump(self) -> str | None:
         """Why the learned poses count as diverged since the last rollback state, or None."""
@@ -474,16 +521,14 @@ class Trainer:
             self._budget, self._t_start = budget, t0
         last = {}
         self.field.train()
+        self._target, self._t_train = iters, t0
         while self.step < iters:
             r = self.train_step()
             if r.get("rollback"):
                 continue
             last = r
-            if self.step % self.tp.log_every == 0 or self.step == iters:
-                info = {"step": self.step, "loss": r["loss"], **{f"loss_{k}": v for k, v in r["terms"].items()},
-                        "inv_s": float(self.field.inv_s().detach()), "lr": self.opt.param_groups[0]["lr"],
-                        "elapsed_s": self.clock() - t0}
-                self.history.append(info)
+            info = r["info"]
+            if info is not None:
                 log.info("step %d loss %.4f %s s=%.1f (%.0f s)", self.step, r["loss"],
                          " ".join(f"{k}={v:.4f}" for k, v in r["terms"].items()), info["inv_s"], info["elapsed_s"])
                 if self.progress is not None:

@@ -1,5 +1,6 @@
 """The pipeline's stages, in order. Each is one module; see docs/STAGES.md."""
 from manifoldneus.config import RunParams, SplitParams
+from manifoldneus.correspondence import CorrespondenceParams
 from manifoldneus.evaluation import MeshParams
 from manifoldneus.field import FieldParams
 from manifoldneus.gate import GateParams
@@ -36,5 +37,6 @@ SHARED_SECTIONS = {
     "render": RenderParams,
     "loss": LossParams,
     "gate": GateParams,
+    "correspondence": CorrespondenceParams,
     "meshing": MeshParams,
 }

@@ -38,7 +38,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "reference")
-SECTIONS = ("anchors", "train", "field", "render", "loss", "gate", "run", "split")
+SECTIONS = ("anchors", "train", "field", "render", "loss", "gate", "correspondence", "run", "split")
 OUTPUTS = ("round_0", "initial_poses.zarr")
 
 

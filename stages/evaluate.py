@@ -33,12 +33,25 @@ OUTPUTS = ("evaluation.json", "pose_error_rounds.png")
 
 
 def _rounds(ctx) -> list[tuple[str, dict]]:
+    """(label, poses) per row: the anchors' initial poses, then each round."""
     out = [("initial", io.load_arrays(ctx.input("anchors") / "initial_poses.zarr"))]
     out.append(("anchors", posefree.load_round(ctx.input("anchors") / "round_0")))
     succ = ctx.input("successors")
     for d in sorted(succ.glob("round_*"), key=lambda p: int(p.name.split("_")[1])):
         out.append((d.name, posefree.load_round(d)))
     return out
+
+
+def placement_poses(rounds: list[tuple[str, dict]]) -> np.ndarray:
+    """Every view at the pose it had when it was first placed (anchors: the initialisation; a
+    successor: the pose its round started it from): what the rounds refine, view for view."""
+    w2c = np.array(rounds[0][1]["w2c"])
+    first = np.array(rounds[0][1]["placed"], bool)
+    for _, r in rounds[1:]:
+        new = r["placed"].astype(bool) & ~first
+        w2c[new] = r["w2c_init"][new]
+        first |= new
+    return w2c
 
 
 def plot_rounds(rows: list[dict], path) -> None:
@@ -74,15 +87,22 @@ def run(ctx) -> None:
     # --- poses per round
     rows = []
     final_res = None
-    for label, r in _rounds(ctx):
+    rounds = _rounds(ctx)
+    for label, r in rounds:
         valid = r["placed"].astype(bool) & (r.get("optimised", r["placed"]).astype(bool))
         if valid.sum() < 3:  # a Sim3 needs 3 centres (e.g. K = 10 % of a sparse set)
             ctx.log.warning("%s: only %d views, too few to align and score", label, int(valid.sum()))
             rows.append({"label": label, "n_views": int(valid.sum()), "skipped": "fewer than 3 views: no Sim3"})
             continue
         res = pose_metrics.evaluate_poses(r["w2c"], gt["w2c"], valid=valid, units_scale=units)
-        rows.append({"label": label, "summary": res["summary"], "n_views": res["n_valid"],
-                     "per_view": pose_metrics.json_summary(res, names)["per_view"]})
+        row = {"label": label, "summary": res["summary"], "n_views": res["n_valid"],
+               "per_view": pose_metrics.json_summary(res, names)["per_view"]}
+        if "w2c_init" in r:  # the same views at the poses this round started from
+            row["start_summary"] = pose_metrics.evaluate_poses(r["w2c_init"], gt["w2c"], valid=valid,
+                                                               units_scale=units)["summary"]
+        if "info" in r:
+            row["guard"] = r["info"].get("train", {}).get("guard")
+        rows.append(row)
         mean = {k: res["summary"][k]["mean"] for k in ("rot_err_deg", "center_err_units")}
         # None: no finite error (e.g. identity init: every centre alike, no Sim3 scale)
         mean = {k: "n/a" if v is None else f"{v:.3f}" for k, v in mean.items()}
@@ -90,6 +110,12 @@ def run(ctx) -> None:
                      mean["rot_err_deg"], mean["center_err_units"], gt_meta["units"])
         final_res = res
     report["poses"] = rows
+    if final_res is not None:  # the final views at their placement poses: what the rounds started from
+        report["placement"] = pose_metrics.evaluate_poses(placement_poses(rounds), gt["w2c"], valid=final_res["valid"],
+                                                          units_scale=units)["summary"]
+        ctx.metrics["placement_rot_err_deg_mean"] = report["placement"]["rot_err_deg"]["mean"]
+        ctx.log.info("placement: the final views at their first poses: rotation %.3f deg (mean)",
+                     report["placement"]["rot_err_deg"]["mean"])
     plot_rounds([r for r in rows if "summary" in r], ctx.out / "pose_error_rounds.png")
     if final_res is None or "summary" not in rows[-1]:
         ctx.log.warning("the final round could not be scored: no geometry or novel-view evaluation")
@@ -144,9 +170,9 @@ def run(ctx) -> None:
         rot_err_deg_mean=fin["rot_err_deg"]["mean"], center_err_units_mean=fin["center_err_units"]["mean"],
         pre_r_deg_mean=fin["pre_r_deg"]["mean"], pre_t_deg_mean=fin["pre_t_deg"]["mean"],
         units=gt_meta["units"])
-    for row, key in ((rows[0], "initial"), (rows[1], "anchors")):
+    for row in rows:
         if "summary" in row:
-            ctx.metrics[f"{key}_rot_err_deg_mean"] = row["summary"]["rot_err_deg"]["mean"]
+            ctx.metrics[f"{row['label']}_rot_err_deg_mean"] = row["summary"]["rot_err_deg"]["mean"]
     if "geometry" in report:
         ctx.metrics.update(chamfer_units=report["geometry"]["chamfer_units"],
                            chamfer_pct_bbox=report["geometry"]["chamfer_pct_of_bbox_diagonal"])

@@ -38,7 +38,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "anchors")
-SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "run", "split")
+SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "correspondence", "run", "split")
 OUTPUTS = ("final",)
 
 
