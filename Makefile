@@ -6,7 +6,7 @@ VALUES ?=
 ARGS ?=
 PY := .venv/bin/python
 
-.PHONY: all stage test bench results report sweep clean setup status
+.PHONY: all stage test bench bench-refine results report sweep clean setup status
 
 setup: .venv/.installed
 .venv/.installed: requirements.txt
@@ -31,6 +31,11 @@ test: setup
 # the bench, then README's Results regenerated from the latest bench JSON of each scene
 bench: setup
 	$(PY) bench/bench.py --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) $(ARGS)
+	$(PY) bench/results_md.py
+
+# do the joint rounds refine their initialisation? synthetic, scan24, scan24_idr x 3 seeds (README: "Refinement")
+bench-refine: setup
+	$(PY) bench/bench_refine.py $(if $(filter command line,$(origin SCENE)),--scenes $(SCENE)) $(ARGS)
 	$(PY) bench/results_md.py
 
 results: setup

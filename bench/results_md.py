@@ -73,6 +73,17 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
         parts += [provenance(path, result, root), bench.comparison_markdown(result)]
     if not scenes:
         parts.append("No bench results yet: run `make bench`.")
+    refine = sorted((Path(bench_dir) / "refine").glob("*.json"), key=lambda p: p.stat().st_mtime)
+    if refine:
+        from bench import bench_refine
+
+        result = json.loads(refine[-1].read_text())
+        m = result["machine"]
+        parts += ["### Refinement (`make bench-refine`: mean ± std over seeds)",
+                  f"_Measured {result['date'].replace('T', ' ')} on {m.get('cpu_model') or m['platform']}, {m['cpus']} "
+                  f"CPUs; `{rel(refine[-1], root)}`"
+                  + ("; with " + " ".join(f"`--set {o}`" for o in result["overrides"]) if result.get("overrides") else "")
+                  + "._", bench_refine.markdown(result)]
     return "\n\n".join(parts)
 
 

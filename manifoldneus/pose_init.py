@@ -400,6 +400,10 @@ class InitResult:
     tree_edges: list[tuple[int, int]]  # (parent, child) global ids of the maximum spanning tree
     unplaced: list[int]  # global ids of the views the reconstruction could not place
     diagnostics: dict = field(default_factory=dict)  # JSON-able numbers (reprojection errors, timings, ...)
+    # the inlier observations of `points` after the final BA: view (global id), point index, pixel [O,2]
+    obs_view: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    obs_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    obs_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def _err_stats(e: np.ndarray) -> dict:
@@ -859,6 +863,8 @@ def init_from_matches(
 
     # gauge: median-centred, robust radius -> gauge_radius
     pts_ids = np.flatnonzero(rec.has_point)
+    point_of_track = np.full(rec.n_tracks, -1, np.int64)
+    point_of_track[pts_ids] = np.arange(len(pts_ids))
     pts = rec.X[pts_ids]
     n_obs_pt = np.bincount(rec.obs_track[obs1], minlength=rec.n_tracks)[pts_ids]
     in_mask = np.ones(len(pts_ids), bool)
@@ -932,7 +938,8 @@ def init_from_matches(
     return InitResult(
         view_ids=view_ids, w2c=w2c, placed=rec.placed.copy(), method=method, points=points, point_obs=n_obs_pt,
         point_in_mask=in_mask, gauge=G, root=view_ids[root], tree_edges=[(view_ids[a], view_ids[b]) for a, b in tree],
-        unplaced=unplaced, diagnostics=diag,
+        unplaced=unplaced, diagnostics=diag, obs_view=np.asarray(view_ids, np.int64)[rec.obs_view[obs1]],
+        obs_point=point_of_track[rec.obs_track[obs1]], obs_uv=np.asarray(rec.obs_uv[obs1], np.float64),
     )
 
 

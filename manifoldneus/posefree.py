@@ -91,10 +91,19 @@ class Round:
         s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids])
         self.corr_p = ctx.section("correspondence")
         self.corr = None
-        if learn_poses:
+        device = ctx.section("run").device
+        if learn_poses and self.corr_p.kind == "reprojection":
+            from manifoldneus.pose_init import init_from_matches
+
+            # the tracks (not the poses) of a bundle adjustment of this round's views' matches
+            ba = init_from_matches(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W)
+            self.corr = correspondence.ReprojectionLoss(
+                correspondence.TrackSet(self.ids, inputs.views.K, ba.obs_view, ba.obs_point, ba.obs_uv), self.corr_p,
+                device)
+        elif learn_poses:
             ms = correspondence.MatchSet(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs,
                                          self.corr_p.holdout_frac, self.corr_p.seed)
-            self.corr = correspondence.CorrespondenceLoss(ms.to(ctx.section("run").device), self.corr_p)
+            self.corr = correspondence.CorrespondenceLoss(ms.to(device), self.corr_p)
         # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
         # correction driven by an unfitted field only moves good initial poses away.
         self.pose_start = int(round(pose_start_frac * iters))
@@ -132,29 +141,21 @@ class Round:
         self.pose_trace.append(trainer.poses_numpy())
 
     def _guard(self, ctx, desc: str) -> dict:
-        """Held-out matches' error at the round's start and end; the starting poses come back when
-        the round made it worse by more than the tolerance (module doc of correspondence)."""
+        """The guard of :mod:`manifoldneus.correspondence`: the round's starting poses come back
+        when its pose update made the held-out correspondences' error worse."""
         t = self.trainer
         if self.corr is None:
             return {"checked": False, "why": "poses not learned"}
-        start = self.corr.held_out_error(t.w2c_init)
-        end = self.corr.held_out_error(t.poses().detach())
-        out = {"checked": start is not None, "held_out_matches": int(self.corr.ms.held_index.numel()),
-               "start": start, "end": end, "start_median_px": self.corr.median_px(t.w2c_init),
-               "end_median_px": self.corr.median_px(t.poses().detach()), "fired": False}
-        if start is None:
-            out["why"] = "no held-out matches"
-            return out
-        if self.corr_p.guard and end > start * (1 + self.corr_p.guard_tolerance):
+        out = correspondence.guard_check(self.corr, t.w2c_init, t.poses().detach(), self.corr_p)
+        if out["fired"]:
             with torch.no_grad():
                 t.xi.zero_()
-            out["fired"] = True
-            ctx.log.warning("%s: the pose update raised the held-out matches' error from %.4g to %.4g (> %g %%): "
-                            "poses rolled back to the round's start", desc, start, end,
+            ctx.log.warning("%s: the pose update raised the held-out %s error from %.4g to %.4g (tolerance %g %%): "
+                            "poses rolled back to the round's start", desc, self.corr_p.kind, out["start"], out["end"],
                             100 * self.corr_p.guard_tolerance)
-        else:
-            ctx.log.info("%s: held-out matches' error %.4g -> %.4g (median %.3f -> %.3f px)", desc, start, end,
-                         out["start_median_px"], out["end_median_px"])
+        elif out["checked"]:
+            ctx.log.info("%s: held-out %s error %.4g -> %.4g (median %.3f -> %.3f px)", desc, self.corr_p.kind,
+                         out["start"], out["end"], out["start_median_px"], out["end_median_px"])
         return out
 
     def run(self, ctx, desc: str, checkpoint: Path | None = None) -> dict:

@@ -13,7 +13,7 @@ Hooks for the pose-free method:
 * ``learn_poses``: poses are ``w2c = apply_correction(xi[view], w2c_init[view])`` with ``xi``
   [N,6] learned by AdamW for ``pose_views`` (default: all training views), from step
   ``pose_start`` on (frozen before it, exactly, not rounded to the logging interval).
-* ``pose_loss(w2c [N,3,4], rng) -> scalar | None`` with a ``weight`` attribute: a term on the poses
+* ``pose_loss(w2c [N,3,4], rng, step) -> scalar | None`` with a ``weight`` attribute: a term on the poses
   alone (the verified matches' Sampson error, :mod:`manifoldneus.correspondence`), added to the
   loss while poses are learned.
 
@@ -442,7 +442,7 @@ class Trainer:
                           band_weights=bw, perturb=True, train=True, want_normals=True)
         total, terms, status = compute_losses(out, b, self.lp)
         if self.pose_loss is not None and self.pose_opt is not None and self.step >= self.pose_start:
-            extra = self.pose_loss(self.poses(), self.rng)
+            extra = self.pose_loss(self.poses(), self.rng, self.step)
             if extra is not None:
                 terms["corr"] = float(extra.detach())
                 total = total + self.pose_loss.weight * extra

@@ -22,6 +22,8 @@ class Params:
     """Section `reference_surface` of params.yaml."""
 
     enabled: bool = param(True, "Train the GT-pose reference (False: write a note and skip)")
+    iters: int = param(0, "Training iterations (0 = train.iters); bench/bench_refine.py sets the pose-free rounds' "
+                       "total, for a comparison at equal iterations", lo=0)
 
 
 UPSTREAM = ("ingest", "ground_truth")
@@ -40,8 +42,9 @@ def run(ctx) -> None:
     views = evaluation.views_from_ingest(ctx.input("ingest"), w2c)
     held = holdout_mask(len(views.names), ctx.section("split"))
     run_p = ctx.section("run")
-    tp = dataclasses.replace(ctx.section("train"), learn_poses=False, device=run_p.device, seed=run_p.seed,
-                             threads=run_p.threads)
+    tp = ctx.section("train")
+    tp = dataclasses.replace(tp, iters=ctx.params.iters or tp.iters, learn_poses=False, device=run_p.device,
+                             seed=run_p.seed, threads=run_p.threads)
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     ckpt = ctx.checkpoint_dir / "model.pt"
     trainer = Trainer(views, ctx.section("field"), ctx.section("render"), ctx.section("loss"), tp,

@@ -1,0 +1,220 @@
+#!/usr/bin/env python
+"""Refinement benchmark: do the joint field-and-pose rounds refine the poses they start from?
+
+    python bench/bench_refine.py [--scenes synthetic,scan24,scan24_idr] [--seeds 0,1,2]
+                                 [--set section.key=value ...] [--reference-seeds 0] [--artifacts DIR]
+                                 [--label NAME] [--out-dir DIR]
+
+Per scene and seed (``run.seed``): the whole pipeline, then from the artifacts the mean rotation /
+centre error of the anchors' initialisation, of every view at its placement pose (what the rounds
+refine, on the final views), after each round (with that round's start), and the final; how often
+the guard gave a round its starting poses back; pycolmap's errors in the same sitting; held-out
+masked PSNR of the final model and of the GT-pose NeuS (`reference_surface`) trained for the same
+number of iterations as all rounds together (for the seeds in --reference-seeds, default the
+first: it is the slowest stage); wall time per stage. Prints mean +- std over seeds, per scene,
+and writes ``<out-dir>/refine/<label>-<date>.json``; ``bench/results_md.py`` puts the newest into
+README. Targets are checked here (``targets``), never in tests.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import pipeline  # noqa: E402
+from bench import bench  # noqa: E402
+from manifoldneus import io  # noqa: E402
+
+TIMED = ("ingest", "features", "matching", "covisibility", "spectral", "schedule", "reference", "anchors",
+         "successors", "mesh", "reference_surface", "evaluate")
+
+
+def rounds_total_iters(store: pipeline.Store) -> int:
+    """Iterations of the anchors' round and every successor round of the current versions."""
+    total = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / "round.json")
+    steps = total["train"]["steps"]
+    succ = store.version_dir("successors", store.current("successors"))
+    for d in succ.glob("round_*"):
+        steps += io.load_json(d / "round.json")["train"]["steps"]
+    return int(steps)
+
+
+def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_reference: bool) -> dict:
+    """The pipeline for one seed, and what it measured."""
+    over = [*overrides, f"run.seed={seed}"]
+    t0 = time.time()
+    pipeline.run(scene, until="successors", overrides=over, artifacts=artifacts)
+    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
+    iters = rounds_total_iters(store)
+    over += [f"reference_surface.iters={iters}"] if with_reference else ["reference_surface.enabled=false"]
+    pipeline.run(scene, overrides=over, artifacts=artifacts)
+    rows = bench.collect(scene, artifacts, None, TIMED)
+    ev = io.load_json(store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json")
+    out = {"seed": seed, "overrides": over, "rounds_iters": iters, "wall_seconds_sitting": time.time() - t0,
+           "stage_seconds": {s: r["wall_seconds"] for s, r in rows.items()}}
+    if not ev.get("poses"):
+        return {**out, "error": "no ground truth: nothing to score"}
+
+    def errs(summary):
+        return {"rot_deg": summary["rot_err_deg"]["mean"], "centre": summary["center_err_units"]["mean"],
+                "centre_pct": summary["center_err_pct"]["mean"]}
+
+    out["units"] = rows["evaluate"]["metrics"].get("units")
+    out["rounds"] = []
+    for r in ev["poses"]:
+        if "summary" not in r:
+            continue
+        row = {"label": r["label"], "n_views": r["n_views"], **errs(r["summary"])}
+        if r.get("start_summary"):
+            row["start"] = errs(r["start_summary"])
+        if r.get("guard"):
+            row["guard_fired"] = bool(r["guard"].get("fired"))
+        out["rounds"].append(row)
+    out["initial"] = out["rounds"][0]
+    out["final"] = out["rounds"][-1]
+    out["placement"] = errs(ev["placement"]) if "placement" in ev else None
+    out["guard_fired"] = sum(r.get("guard_fired", False) for r in out["rounds"])
+    out["guard_checked"] = sum("guard_fired" in r for r in out["rounds"])
+    ref = bench.reference_scores(store.version_dir("evaluate_poses", store.current("evaluate_poses")))
+    out["pycolmap"] = {"rot_deg": ref.get("rot_err_deg_mean"), "centre": ref.get("center_err_units_mean"),
+                       "n_valid": ref.get("n_valid"), "n_views": ref.get("n_views")}
+    nvs = ev.get("novel_views", {}).get("summary", {})
+    out["psnr_masked"] = nvs.get("psnr_masked", nvs.get("psnr"))
+    if with_reference:
+        refj = io.load_json(store.version_dir("reference_surface", store.current("reference_surface")) / "reference.json")
+        if refj.get("trained"):
+            s = refj["novel_views"]["summary"]
+            out["gt_pose_psnr_masked"] = s.get("psnr_masked", s.get("psnr"))
+            out["gt_pose_iters"] = refj["train"]["steps"]
+    return out
+
+
+def spread(values) -> dict:
+    v = np.array([x for x in values if x is not None], float)
+    if not len(v):
+        return {"mean": None, "std": None, "n": 0}
+    return {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0, "n": int(len(v)),
+            "min": float(v.min()), "max": float(v.max())}
+
+
+def summarise(runs: list[dict]) -> dict:
+    ok = [r for r in runs if "final" in r]
+    s = {
+        "initial_rot_deg": spread(r["initial"]["rot_deg"] for r in ok),
+        "placement_rot_deg": spread(r["placement"]["rot_deg"] for r in ok if r["placement"]),
+        "final_rot_deg": spread(r["final"]["rot_deg"] for r in ok),
+        "final_centre": spread(r["final"]["centre"] for r in ok),
+        "placement_centre": spread(r["placement"]["centre"] for r in ok if r["placement"]),
+        "pycolmap_rot_deg": spread(r["pycolmap"]["rot_deg"] for r in ok),
+        "pycolmap_centre": spread(r["pycolmap"]["centre"] for r in ok),
+        "psnr_masked": spread(r["psnr_masked"] for r in ok),
+        "gt_pose_psnr_masked": spread(r.get("gt_pose_psnr_masked") for r in ok),
+        "guard_fired": int(sum(r["guard_fired"] for r in ok)),
+        "guard_checked": int(sum(r["guard_checked"] for r in ok)),
+        "wall_seconds": spread(sum(r["stage_seconds"].get(k, 0) for k in TIMED if k not in ("reference_surface", "evaluate"))
+                               for r in ok),
+    }
+    labels = [row["label"] for row in ok[0]["rounds"]] if ok else []
+    s["per_round"] = {lab: {"rot_deg": spread(next(x["rot_deg"] for x in r["rounds"] if x["label"] == lab) for r in ok),
+                            "start_rot_deg": spread(next((x.get("start") or {}).get("rot_deg") for x in r["rounds"]
+                                                         if x["label"] == lab) for r in ok)}
+                      for lab in labels}
+    return s
+
+
+TARGETS = {  # scene -> list of (name, check(run) -> (value, limit, met))
+    "synthetic": [("final <= 0.5 x initialisation", lambda r: (r["final"]["rot_deg"], 0.5 * r["initial"]["rot_deg"]))],
+    "scan24": [("final <= initialisation", lambda r: (r["final"]["rot_deg"], r["initial"]["rot_deg"])),
+               ("final <= 0.8 x pycolmap", lambda r: (r["final"]["rot_deg"], 0.8 * r["pycolmap"]["rot_deg"]))],
+    "scan24_idr": [("final <= initialisation", lambda r: (r["final"]["rot_deg"], r["initial"]["rot_deg"])),
+                   ("final <= pycolmap", lambda r: (r["final"]["rot_deg"], r["pycolmap"]["rot_deg"]))],
+}
+
+
+def targets(scene: str, runs: list[dict]) -> list[dict]:
+    out = []
+    ok = [r for r in runs if "final" in r]
+    for name, check in TARGETS.get(scene, []):
+        per_seed = [check(r) for r in ok]
+        out.append({"target": name, "per_seed": [{"seed": r["seed"], "value": v, "limit": lim, "met": v <= lim}
+                                                 for r, (v, lim) in zip(ok, per_seed)],
+                    "met_every_seed": bool(per_seed) and all(v <= lim for v, lim in per_seed)})
+    rot = spread(r["final"]["rot_deg"] for r in ok)
+    out.append({"target": "spread over seeds <= 0.02 deg", "value": rot["std"],
+                "met_every_seed": rot["std"] is not None and rot["std"] <= 0.02})
+    psnr = [(r["psnr_masked"], r["gt_pose_psnr_masked"]) for r in ok if r.get("gt_pose_psnr_masked") is not None]
+    if psnr:
+        out.append({"target": "held-out masked PSNR within 0.5 dB of the GT-pose NeuS at equal iterations",
+                    "per_seed": [{"value": a, "limit": b - 0.5, "met": a >= b - 0.5} for a, b in psnr],
+                    "met_every_seed": all(a >= b - 0.5 for a, b in psnr)})
+    return out
+
+
+def pm(s: dict, spec: str = ".3f") -> str:
+    if s.get("mean") is None:
+        return "-"
+    return f"{s['mean']:{spec}} ± {s['std']:{spec}}" if s["n"] > 1 else f"{s['mean']:{spec}}"
+
+
+def markdown(result: dict) -> str:
+    header = ["scene", "seeds", "init (anchors) deg", "placement deg", "final deg", "pycolmap deg",
+              "final centre", "pycolmap centre", "guard fired", "masked PSNR dB", "GT-pose PSNR dB (equal iters)",
+              "rounds wall s"]
+    rows = []
+    for scene, sc in result["scenes"].items():
+        s = sc["summary"]
+        rows.append([scene, ",".join(str(r["seed"]) for r in sc["runs"]), pm(s["initial_rot_deg"]),
+                     pm(s["placement_rot_deg"]), pm(s["final_rot_deg"]), pm(s["pycolmap_rot_deg"]),
+                     pm(s["final_centre"], ".4f"), pm(s["pycolmap_centre"], ".4f"),
+                     f"{s['guard_fired']}/{s['guard_checked']}", pm(s["psnr_masked"], ".2f"),
+                     pm(s["gt_pose_psnr_masked"], ".2f"), pm(s["wall_seconds"], ".0f")])
+    parts = [bench.markdown_table(header, rows)]
+    for scene, sc in result["scenes"].items():
+        per = sc["summary"]["per_round"]
+        parts.append(f"{scene}, per round (mean rotation error of the round's views, deg: start -> end): " + "; ".join(
+            f"{lab} {pm(v['start_rot_deg'])} -> {pm(v['rot_deg'])}" if v["start_rot_deg"]["n"] else f"{lab} {pm(v['rot_deg'])}"
+            for lab, v in per.items()))
+        missed = [t for t in sc["targets"] if not t["met_every_seed"]]
+        parts.append(f"{scene} targets: " + "; ".join(
+            f"{t['target']}: {'met' if t['met_every_seed'] else 'MISSED'}" for t in sc["targets"])
+            + ("" if not missed else " (per-seed values in the JSON)"))
+    return "\n\n".join(parts)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenes", default="synthetic,scan24,scan24_idr")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--reference-seeds", default=None, help="seeds that also train the GT-pose NeuS (default: the first)")
+    ap.add_argument("--set", action="append", default=[], dest="overrides")
+    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
+    ap.add_argument("--label", default="refine")
+    ap.add_argument("--out-dir", type=Path, default=bench.DEFAULT_OUT_DIR)
+    args = ap.parse_args(argv)
+    seeds = [int(s) for s in args.seeds.split(",")]
+    ref_seeds = {int(s) for s in args.reference_seeds.split(",")} if args.reference_seeds else {seeds[0]}
+    result = {"label": args.label, "date": dt.datetime.now().isoformat(timespec="seconds"),
+              "commit": bench.machine().get("commit"), "machine": bench.machine(), "overrides": args.overrides,
+              "scenes": {}}
+    path = args.out_dir / "refine" / f"{args.label}-{dt.date.today().isoformat()}.json"
+    for scene in args.scenes.split(","):
+        runs = []
+        for seed in seeds:
+            print(f"== {scene}, seed {seed}", flush=True)
+            runs.append(one_run(scene, seed, args.overrides, args.artifacts, seed in ref_seeds))
+            result["scenes"][scene] = {"runs": runs, "summary": summarise(runs), "targets": targets(scene, runs)}
+            io.save_json(path, result)  # after every run: a stopped bench keeps what it measured
+    print(markdown(result))
+    print(f"\nwrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

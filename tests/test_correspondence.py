@@ -1,0 +1,117 @@
+"""The correspondence term and guard of the joint rounds, on exact synthetic correspondences."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from manifoldneus import cameras, correspondence, synthetic
+from manifoldneus.pose_init import PairMatch
+from manifoldneus.pose_metrics import evaluate_poses
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """12 DTU-like views of 300 points in the unit ball; every view sees every point (keypoint k =
+    point k), each view matched with its 3 next neighbours."""
+    rng = np.random.default_rng(0)
+    w2c = synthetic.camera_poses(12)
+    K = np.tile(np.array([[300.0, 0, 128], [0, 300.0, 128], [0, 0, 1]]), (12, 1, 1))
+    X = rng.uniform(-0.5, 0.5, (300, 3))
+    kps = []
+    for i in range(12):
+        Xc = X @ w2c[i, :3, :3].T + w2c[i, :3, 3]
+        kps.append((Xc[:, :2] / Xc[:, 2:]) @ K[i, :2, :2].T + K[i, :2, 2])
+    idx = np.arange(300)
+    pairs = [PairMatch(i, j, np.stack([idx, idx], 1), np.eye(3), np.array([1.0, 0, 0]))
+             for i in range(12) for j in range(i + 1, min(i + 4, 12))]
+    obs_view = np.repeat(np.arange(12), 300)
+    obs_point = np.tile(idx, 12)
+    obs_uv = np.concatenate(kps)
+    return {"w2c": w2c, "K": K, "kps": kps, "pairs": pairs, "tracks": (obs_view, obs_point, obs_uv)}
+
+
+def perturb(w2c, rot_deg, seed=1):
+    rng = np.random.default_rng(seed)
+    xi = np.zeros((len(w2c), 6))
+    axis = rng.normal(size=(len(w2c), 3))
+    xi[:, 3:] = axis / np.linalg.norm(axis, axis=1, keepdims=True) * np.radians(rot_deg)
+    xi[:, :3] = rng.normal(scale=0.01 * rot_deg, size=(len(w2c), 3))
+    return cameras.apply_correction(torch.tensor(xi), torch.tensor(w2c)).float()
+
+
+def losses(scene, kind, holdout=0.2):
+    p = correspondence.CorrespondenceParams(kind=kind, holdout_frac=holdout, batch=100000)
+    ids = np.arange(12)
+    if kind == "sampson":
+        ms = correspondence.MatchSet(ids, scene["K"], scene["kps"], scene["pairs"], p.holdout_frac, p.seed)
+        return correspondence.CorrespondenceLoss(ms, p), p
+    tracks = correspondence.TrackSet(ids, scene["K"], *scene["tracks"])
+    return correspondence.ReprojectionLoss(tracks, p), p
+
+
+@pytest.mark.parametrize("kind", ["sampson", "reprojection"])
+def test_error_is_zero_at_the_truth_and_grows_with_a_perturbation(scene, kind):
+    loss, _ = losses(scene, kind)
+    truth = torch.tensor(scene["w2c"][:, :3, :4]).float()
+    assert loss.median_px(truth) < 0.01 and loss.median_px(truth, held_out=False) < 0.01
+    assert loss.median_px(perturb(scene["w2c"], 0.5)) > 0.3  # 0.5 deg at f = 300 px is ~2.6 px
+    assert loss.n_held_out > 0
+
+
+def test_sampson_ignores_the_baseline_length(scene):
+    """The epipolar error sees rotations and translation directions, not the scale of the scene."""
+    loss, _ = losses(scene, "sampson")
+    w = torch.tensor(scene["w2c"][:, :3, :4]).float()
+    scaled = torch.cat([w[:, :, :3], 3.0 * w[:, :, 3:]], -1)
+    assert loss.median_px(scaled) < 0.01
+
+
+@pytest.mark.parametrize("kind", ["sampson", "reprojection"])
+def test_term_alone_pulls_perturbed_poses_back(scene, kind):
+    """Adam on the correspondence term only (view 0 fixed: the gauge) takes 1-deg perturbations most
+    of the way back to the truth."""
+    loss, _ = losses(scene, kind)
+    start = perturb(scene["w2c"], 1.0)
+    start[0] = torch.tensor(scene["w2c"][0, :3, :4]).float()
+    xi = torch.zeros(12, 6, requires_grad=True)
+    opt = torch.optim.Adam([xi], lr=2e-3)
+    rng = torch.Generator().manual_seed(0)
+    mask = torch.ones(12, 1)
+    mask[0] = 0
+    for step in range(300):
+        opt.zero_grad()
+        loss(cameras.apply_correction(xi * mask, start), rng, step).backward()
+        opt.step()
+    with torch.no_grad():
+        end = cameras.apply_correction(xi * mask, start)
+
+    def err(w):
+        full = np.tile(np.eye(4), (12, 1, 1))
+        full[:, :3, :4] = w.double().numpy()
+        return evaluate_poses(full, scene["w2c"])["summary"]["rot_err_deg"]["mean"]
+
+    assert err(start) > 0.8
+    assert err(end) < 0.3 * err(start)
+
+
+def test_guard_fires_only_when_the_held_out_error_rises(scene):
+    loss, p = losses(scene, "reprojection")
+    truth = perturb(scene["w2c"], 0.05, seed=3)  # real data is never exact: a small error to start from
+    worse = perturb(scene["w2c"], 0.3)
+    fired = correspondence.guard_check(loss, truth, worse, p)
+    assert fired["checked"] and fired["fired"] and fired["end"] > fired["start"]
+    assert not correspondence.guard_check(loss, worse, truth, p)["fired"]
+    off = dataclasses.replace(p, guard=False)
+    assert not correspondence.guard_check(loss, truth, worse, off)["fired"]
+    tolerant = dataclasses.replace(p, guard_tolerance=1e9)
+    assert not correspondence.guard_check(loss, truth, worse, tolerant)["fired"]
+
+
+def test_held_out_draw_is_fixed_by_the_seed(scene):
+    a, _ = losses(scene, "sampson")
+    b, _ = losses(scene, "sampson")
+    assert torch.equal(a.ms.held_index, b.ms.held_index)
+    assert 0.1 < a.n_held_out / len(a.ms) < 0.3  # holdout_frac 0.2
