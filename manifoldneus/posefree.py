@@ -161,8 +161,7 @@ class Round:
     def run(self, ctx, desc: str, checkpoint: Path | None = None) -> dict:
         t = self.trainer
         t.checkpoint_path = checkpoint
-        if checkpoint is not None and checkpoint.exists():
-            t.load(checkpoint)
+        if checkpoint is not None and t.resume(checkpoint):
             ctx.log.info("%s: resumed from %s at step %d", desc, checkpoint.name, t.step)
         bar = ctx.progress(total=self.iters, desc=desc, initial=t.step)
 

@@ -26,8 +26,10 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field as dc_field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -369,11 +371,30 @@ class Trainer:
         self.extra_state = copy.deepcopy(s.get("extra", {}))
 
     def save(self, path) -> None:
-        """Write a checkpoint (torch.save) that :meth:`load` resumes from."""
-        torch.save(self.state_dict(), str(path))
+        """Write a checkpoint (torch.save) that :meth:`load` resumes from; atomically (a temporary file,
+        then a rename), so a kill while writing leaves the previous checkpoint, never a truncated one."""
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        torch.save(self.state_dict(), str(tmp))
+        os.replace(tmp, path)
 
     def load(self, path) -> None:
         self.load_state_dict(torch.load(str(path), map_location=self.device, weights_only=False))
+
+    def resume(self, path) -> bool:
+        """Load the checkpoint at ``path`` if there is one; an unreadable one is discarded with a
+        warning (training restarts from step 0). Returns whether it resumed."""
+        path = Path(path)
+        if not path.exists():
+            return False
+        try:
+            self.load(path)
+        except Exception as e:  # truncated or foreign file: its content is lost either way
+            log.warning("checkpoint %s is unreadable (%s: %s); discarded, training starts afresh", path,
+                        type(e).__name__, str(e)[:120])
+            path.unlink()
+            return False
+        return True
 
     def _snapshot(self) -> None:
         self._good_state = copy.deepcopy(self.state_dict())

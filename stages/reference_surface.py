@@ -49,8 +49,7 @@ def run(ctx) -> None:
     ckpt = ctx.checkpoint_dir / "model.pt"
     trainer = Trainer(views, ctx.section("field"), ctx.section("render"), ctx.section("loss"), tp,
                       train_views=np.flatnonzero(~held), checkpoint_path=ckpt)
-    if ckpt.exists():
-        trainer.load(ckpt)
+    if trainer.resume(ckpt):
         ctx.log.info("resumed from its checkpoint at step %d", trainer.step)
     bar = ctx.progress(total=tp.iters, desc="reference_surface", initial=trainer.step)
     started = time.time()

@@ -317,3 +317,20 @@ def test_poses_stay_frozen_until_pose_start_exactly():
     tr.train_step()
     tr.train_step()
     assert not torch.equal(tr.poses(), tr.w2c_init)
+
+
+def test_truncated_checkpoint_is_discarded_not_fatal(tmp_path, caplog):
+    views = synthetic_views(n=4, size=16)
+    fp, rp, tp = tiny_params(10)
+    tr = Trainer(views, fp, rp, LossParams(), tp)
+    tr.train()
+    ck = tmp_path / "round_0.pt"
+    tr.save(ck)
+    assert [p.name for p in tmp_path.iterdir()] == ["round_0.pt"]  # no temporary file left behind
+    fresh = Trainer(views, fp, rp, LossParams(), tp)
+    assert fresh.resume(ck) and fresh.step == 10
+    ck.write_bytes(ck.read_bytes()[:1000])  # killed while writing (before atomic saves)
+    again = Trainer(views, fp, rp, LossParams(), tp)
+    assert not again.resume(ck) and again.step == 0 and not ck.exists()
+    assert "unreadable" in caplog.text
+    assert not again.resume(tmp_path / "absent.pt")
