@@ -64,8 +64,19 @@ def test_settings_that_name_one_version_share_it(dirs, capsys, table, values):
     assert second["errors"] == first["errors"] and second["fingerprints"] == first["fingerprints"]
 
 
+def resolved(dirs, row, stage) -> dict:
+    """The resolved parameters recorded in the manifest of the version a sweep row used."""
+    artifacts, _ = dirs
+    store = pipeline.Store(artifacts, "synthetic")
+    return json.loads((store.version_dir(stage, row["fingerprints"][stage]) / "manifest.json").read_text())["params"]
+
+
 def test_a6_losses_without_priors(dirs, capsys):
     (everything, recon), printed = run(dirs, "A6", ["all", "recon"], capsys)
+    # the setting reached the stage: recon switches the prior terms off in what anchors resolved
+    assert resolved(dirs, recon, "anchors")["loss"]["w_depth"] == 0.0
+    assert resolved(dirs, recon, "anchors")["loss"]["w_normal"] == 0.0
+    assert resolved(dirs, everything, "anchors")["loss"]["w_depth"] > 0
     # the synthetic scene has no mono priors: the depth and normal terms are off in both rows
     assert "no monocular depth or normal priors" in printed
     assert recon["stages"]["reference_surface"] == "computed"  # it shares the `loss` section
@@ -73,8 +84,10 @@ def test_a6_losses_without_priors(dirs, capsys):
 
 
 def test_a7_strategies(dirs, capsys):
-    (fps, _), _ = run(dirs, "A7", ["FPS-E", "MaVOS-SE"], capsys)
+    (fps, mavos), _ = run(dirs, "A7", ["FPS-E", "MaVOS-SE"], capsys)
     assert fps["stages"]["schedule"] == "computed"
+    assert (resolved(dirs, fps, "schedule")["schedule"]["strategy"], resolved(dirs, fps, "schedule")["schedule"]["coverage"]) == ("fps", "E")
+    assert (resolved(dirs, mavos, "schedule")["schedule"]["strategy"], resolved(dirs, mavos, "schedule")["schedule"]["coverage"]) == ("mavos", "SE")
 
 
 def test_sparse_views(dirs, capsys):
