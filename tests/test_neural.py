@@ -266,19 +266,19 @@ def test_band_weights_interface():
         a = f.sdf(x, torch.ones(10, L))
         b = f.sdf(x)
         assert torch.allclose(a, b)
+        # initial surface is (about) the sphere of init_radius: exact for grid, approximate for mlp
+        x5 = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1) * 0.5
+        assert abs(float(f.sdf(x5).detach().mean())) < (0.01 if kind == "grid" else 0.1)
+        g, _ = f.gradient(x)
+        assert g.shape == (10, 3)
         # the weights reach the field: switching the finest band/level off changes the output
-        # (grid features start random, so their levels matter from the first step)
+        # (weights perturbed first: a fresh field may not use its finest level yet)
         with torch.no_grad():
             for prm in f.parameters():
                 prm.add_(0.1 * torch.randn_like(prm))
         off = torch.ones(10, L)
         off[:, -1] = 0.0
         assert not torch.allclose(f.sdf(x, off), f.sdf(x, torch.ones(10, L)), atol=1e-6)
-        # initial surface is (about) the sphere of init_radius: exact for grid, approximate for mlp
-        x5 = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1) * 0.5
-        assert abs(float(f.sdf(x5).detach().mean())) < (0.01 if kind == "grid" else 0.1)
-        g, _ = f.gradient(x)
-        assert g.shape == (10, 3)
 
 
 def _fingerprint(tr: Trainer) -> list[torch.Tensor]:
