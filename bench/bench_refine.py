@@ -96,6 +96,16 @@ def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_r
     return out
 
 
+def git_commit() -> str | None:
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
 def spread(values) -> dict:
     v = np.array([x for x in values if x is not None], float)
     if not len(v):
@@ -201,9 +211,10 @@ def main(argv=None) -> int:
     seeds = [int(s) for s in args.seeds.split(",")]
     ref_seeds = {int(s) for s in args.reference_seeds.split(",")} if args.reference_seeds else {seeds[0]}
     result = {"label": args.label, "date": dt.datetime.now().isoformat(timespec="seconds"),
-              "commit": bench.machine().get("commit"), "machine": bench.machine(), "overrides": args.overrides,
+              "commit": git_commit(), "machine": bench.machine(), "overrides": args.overrides,
               "scenes": {}}
     path = args.out_dir / "refine" / f"{args.label}-{dt.date.today().isoformat()}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
     for scene in args.scenes.split(","):
         runs = []
         for seed in seeds:
