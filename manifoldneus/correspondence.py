@@ -27,15 +27,14 @@ from manifoldneus.config import param
 
 @dataclass
 class CorrespondenceParams:
-    """Section `correspondence`: the matches-based pose term and the round guard."""
+    """Section `correspondence`: the matches-based pose term and the round guard (its weight is a
+    stage's own: `anchors.correspondence_weight`, `successors.correspondence_weight`)."""
 
-    kind: str = param("sampson", "sampson: epipolar error of the verified matches (no 3D points); reprojection: error of "
+    kind: str = param("reprojection", "sampson: epipolar error of the verified matches (no 3D points); reprojection: error of "
                       "the bundle-adjusted tracks, points re-triangulated from the current poses every "
                       "`retriangulate_every` steps (the points tie the cameras' distances, which epipolar errors leave "
                       "loose)", choices=["sampson", "reprojection"])
     retriangulate_every: int = param(10, "reprojection: steps between re-triangulations of the points", lo=1)
-    weight: float = param(0.01, "Weight of the robust Sampson error (px^2) of the verified matches in the pose loss "
-                          "(0 = photometric poses only)", lo=0.0)
     robust_px: float = param(1.5, "Cauchy scale of the Sampson error (px): matches far above it pull little", lo=0.01)
     batch: int = param(16384, "Matches per iteration (all of them when fewer)", lo=1)
     holdout_frac: float = param(0.1, "Fraction of the verified matches kept out of the loss for the guard",
@@ -163,8 +162,8 @@ class ReprojectionLoss:
     adjustment inside the joint optimisation. Tracks drawn with ``holdout_frac`` stay out of the
     loss; the guard re-triangulates them under the start and the end poses."""
 
-    def __init__(self, tracks: TrackSet, p: CorrespondenceParams, device="cpu"):
-        self.tr, self.p, self.weight = tracks, p, p.weight
+    def __init__(self, tracks: TrackSet, p: CorrespondenceParams, weight: float = 1.0, device="cpu"):
+        self.tr, self.p, self.weight = tracks, p, weight
         rng = np.random.default_rng(p.seed)
         held_track = rng.random(tracks.n_tracks) < p.holdout_frac
         held = held_track[tracks.track]
@@ -188,7 +187,7 @@ class ReprojectionLoss:
 
     def __call__(self, w2c: torch.Tensor, rng: torch.Generator, step: int = 0) -> torch.Tensor | None:
         idx = self.train_index
-        if idx.numel() == 0 or self.p.weight <= 0:
+        if idx.numel() == 0 or self.weight <= 0:
             return None
         if self.points is None or step - self._points_step >= self.p.retriangulate_every or step < self._points_step:
             self.points, self._points_step = self._points(w2c), step - step % self.p.retriangulate_every
@@ -217,9 +216,9 @@ class ReprojectionLoss:
 class CorrespondenceLoss:
     """The pose term a :class:`~manifoldneus.train.Trainer` adds to its loss (see module doc)."""
 
-    def __init__(self, ms: MatchSet, p: CorrespondenceParams):
+    def __init__(self, ms: MatchSet, p: CorrespondenceParams, weight: float = 1.0):
         self.ms, self.p = ms, p
-        self.weight = p.weight
+        self.weight = weight
 
     @property
     def n_held_out(self) -> int:
@@ -227,7 +226,7 @@ class CorrespondenceLoss:
 
     def __call__(self, w2c: torch.Tensor, rng: torch.Generator, step: int = 0) -> torch.Tensor | None:
         idx = self.ms.train_index
-        if idx.numel() == 0 or self.p.weight <= 0:
+        if idx.numel() == 0 or self.weight <= 0:
             return None
         if idx.numel() > self.p.batch:
             pick = torch.randint(0, idx.numel(), (self.p.batch,), generator=rng).to(idx.device)

@@ -82,7 +82,7 @@ class Round:
 
     def __init__(self, ctx, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
                  pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
-                 pose_start_frac: float = 0.0):
+                 pose_start_frac: float = 0.0, correspondence_weight: float = 0.0):
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.full_K = inputs.views.K[self.ids]
@@ -99,11 +99,11 @@ class Round:
             ba = init_from_matches(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W)
             self.corr = correspondence.ReprojectionLoss(
                 correspondence.TrackSet(self.ids, inputs.views.K, ba.obs_view, ba.obs_point, ba.obs_uv), self.corr_p,
-                device)
+                correspondence_weight, device)
         elif learn_poses:
             ms = correspondence.MatchSet(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs,
                                          self.corr_p.holdout_frac, self.corr_p.seed)
-            self.corr = correspondence.CorrespondenceLoss(ms.to(device), self.corr_p)
+            self.corr = correspondence.CorrespondenceLoss(ms.to(device), self.corr_p, correspondence_weight)
         # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
         # correction driven by an unfitted field only moves good initial poses away.
         self.pose_start = int(round(pose_start_frac * iters))

@@ -31,6 +31,8 @@ class Params:
                                    lo=0.0, hi=1.0)
     pose_warmup_frac: float = param(0.1, "Pose lr warm-up as a fraction of the stage (supplement: 2k iterations)",
                                     lo=0.0, hi=1.0)
+    correspondence_weight: float = param(1.0, "Weight of the correspondence term (section `correspondence`) in the "
+                                         "anchors' pose loss; 0 = photometric poses only (docs/REFINEMENT.md)", lo=0.0)
     reproj_px: float = param(3.0, "matches init: inlier reprojection threshold (px)", lo=0.1)
     gauge_radius: float = param(0.8, "Robust radius the anchors' points are scaled to (object in the unit sphere)",
                                 lo=0.1, hi=1.0)
@@ -105,7 +107,7 @@ def run(ctx) -> None:
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     rnd = posefree.Round(ctx, inputs, anchors, w2c0, s_tilde, iters=p.iters, pose_lr=p.pose_lr,
                          pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
-                         pose_start_frac=p.pose_start_frac)
+                         pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight)
     summary = rnd.run(ctx, "anchors", ctx.checkpoint_dir / "round_0.pt")
     posefree.save_round(ctx.out / "round_0", rnd, placed, {
         "round": 0, "views": anchors, "names": [inputs.names[a] for a in anchors], "init": init_info,

@@ -28,6 +28,9 @@ class Params:
                                    lo=0.0, hi=1.0)
     pose_warmup_frac: float = param(0.1, "Pose lr warm-up as a fraction of a round", lo=0.0, hi=1.0)
     optimise_poses: bool = param(True, "Learn per-view pose corrections")
+    correspondence_weight: float = param(0.01, "Weight of the correspondence term in a successor round's pose loss "
+                                         "(smaller than the anchors': with many views the matches' own optimum is "
+                                         "further from the truth than the images', docs/REFINEMENT.md)", lo=0.0)
     placement: str = param("depth", "Initial pose of a new view: 'depth' (PnP on matches lifted with depth rendered "
                            "from the model, METHOD.md) or 'matches' (incremental SfM on the verified matches of all "
                            "views so far, Sim3-aligned to the optimised poses)", choices=["depth", "matches"])
@@ -123,7 +126,7 @@ def run(ctx) -> None:
         iters = p.final_iters if r == n_rounds and p.final_iters else p.iters
         rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters,
                              pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
-                             carry=carry, pose_start_frac=p.pose_start_frac)
+                             carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight)
         summary = rnd.run(ctx, f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt")
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,

@@ -47,9 +47,9 @@ def losses(scene, kind, holdout=0.2):
     ids = np.arange(12)
     if kind == "sampson":
         ms = correspondence.MatchSet(ids, scene["K"], scene["kps"], scene["pairs"], p.holdout_frac, p.seed)
-        return correspondence.CorrespondenceLoss(ms, p), p
+        return correspondence.CorrespondenceLoss(ms, p, 1.0), p
     tracks = correspondence.TrackSet(ids, scene["K"], *scene["tracks"])
-    return correspondence.ReprojectionLoss(tracks, p), p
+    return correspondence.ReprojectionLoss(tracks, p, 1.0), p
 
 
 @pytest.mark.parametrize("kind", ["sampson", "reprojection"])
