@@ -256,7 +256,13 @@ class Store:
         return self.stage_dir(stage) / fingerprint
 
     def is_complete(self, stage: str, fingerprint: str) -> bool:
-        return (self.version_dir(stage, fingerprint) / MANIFEST).is_file()
+        """A version exists once its manifest is written; an unreadable manifest (truncated by a
+        crash or an edit) makes it missing, so it is recomputed rather than trusted."""
+        try:
+            json.loads((self.version_dir(stage, fingerprint) / MANIFEST).read_text())
+        except (OSError, ValueError):
+            return False
+        return True
 
     def current(self, stage: str) -> str | None:
         link = self.stage_dir(stage) / self.pointer

@@ -9,6 +9,7 @@ Unknown keys, wrong types and out-of-range values raise :class:`ParamError` nami
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from dataclasses import MISSING, field, fields
 from typing import Any
@@ -61,11 +62,13 @@ def _coerce(key: str, value: Any, typ) -> Any:
     if typ is float:
         if isinstance(value, str):  # YAML 1.1 reads 5e-4 (no dot) as a string
             try:
-                return float(value)
+                value = float(value)
             except ValueError:
                 pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ParamError(f"{key}: expected a number, got {value!r}")
+        if not math.isfinite(value):  # NaN passes every range check and poisons what it reaches
+            raise ParamError(f"{key}: expected a finite number, got {value!r}")
         return float(value)
     if typ is str:
         if not isinstance(value, str):

@@ -161,7 +161,9 @@ class Round:
     def run(self, ctx, desc: str, checkpoint: Path | None = None) -> dict:
         t = self.trainer
         t.checkpoint_path = checkpoint
+        resumed_from = None
         if checkpoint is not None and t.resume(checkpoint):
+            resumed_from = t.step
             ctx.log.info("%s: resumed from %s at step %d", desc, checkpoint.name, t.step)
         bar = ctx.progress(total=self.iters, desc=desc, initial=t.step)
 
@@ -173,6 +175,7 @@ class Round:
         summary = t.train(callback=callback)
         bar.close()
         summary["seconds"] = time.time() - started
+        summary["resumed_from_step"] = resumed_from  # None: ran from step 0 (the history covers every step either way)
         summary["guard"] = self.guard = self._guard(ctx, desc)
         return summary
 

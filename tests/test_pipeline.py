@@ -78,6 +78,16 @@ def test_lock_refuses_a_second_run(artifacts):
             pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
 
 
+def test_truncated_manifest_is_a_missing_version(artifacts):
+    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    store = pipeline.Store(artifacts, "synthetic")
+    manifest = store.version_dir("ingest", store.current("ingest")) / "manifest.json"
+    manifest.write_text(manifest.read_text()[:40])
+    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "missing"
+    assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {"ingest": "computed"}
+    assert json.loads(manifest.read_text())["stage"] == "ingest"
+
+
 def test_force_recomputes(artifacts):
     pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
     out = pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, force=["ingest"], artifacts=artifacts)
@@ -129,6 +139,10 @@ def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_p
         ("nosection.key=1", "unknown section 'nosection'"),
         ("downscale=2", "expected section.key=value"),
         ("ingest.load_masks=maybe", "ingest.load_masks: expected true/false"),
+        ("matching.ratio=.nan", "matching.ratio: expected a finite number"),
+        ("schedule.alpha=nan", "schedule.alpha: expected a finite number"),
+        ("ingest.intrinsics=[500,500,nan,192]", "ingest.intrinsics: expected a finite number"),
+        ("train.lr=inf", "train.lr: expected a finite number"),
     ],
 )
 def test_bad_set_is_a_clear_error(artifacts, override, message):
