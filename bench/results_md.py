@@ -41,6 +41,18 @@ def latest_results(bench_dir: Path) -> dict[str, tuple[Path, dict | None]]:
     return out
 
 
+def refine_files(bench_dir: Path) -> list[Path]:
+    """The refinement bench's JSON files, oldest first (by the date they record)."""
+    files = list((Path(bench_dir) / "refine").glob("*.json"))
+    return sorted(files, key=lambda p: json.loads(p.read_text())["date"])
+
+
+def refine_newer_than(bench_dir: Path, path: Path) -> bool:
+    """Whether the newest refinement bench is newer than the per-system bench JSON at `path`."""
+    files = refine_files(bench_dir)
+    return bool(files) and json.loads(files[-1].read_text())["date"] > json.loads(path.read_text())["date"]
+
+
 def provenance(path: Path, result: dict, root: Path) -> str:
     """The generated line: when, on what machine, with which non-default options."""
     m = result["machine"]
@@ -70,10 +82,15 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
         if result is None:
             parts.append(f"`{rel(path, root)}` predates the per-system bench: run `make bench SCENE={scene}`.")
             continue
+        if refine_newer_than(bench_dir, path):
+            parts.append(f"`{rel(path, root)}` was measured before the joint rounds' correspondence term "
+                         f"(docs/REFINEMENT.md): its figures are not what the code gives now, so they are not shown "
+                         f"here; `make bench SCENE={scene}` measures them again. The refinement bench below is current.")
+            continue
         parts += [provenance(path, result, root), bench.comparison_markdown(result)]
     if not scenes:
         parts.append("No bench results yet: run `make bench`.")
-    refine = sorted((Path(bench_dir) / "refine").glob("*.json"), key=lambda p: p.stat().st_mtime)
+    refine = refine_files(bench_dir)
     if refine:
         from bench import bench_refine
 
