@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import pipeline  # noqa: E402
-from manifoldneus import io, pose_metrics, posefree  # noqa: E402
+from manifoldneus import artifacts, io, pose_metrics  # noqa: E402
 
 SYSTEMS = {"ManifoldNeuS": None, "NeuS-BARF": "neus-barf", "NeuS-COLMAP": "neus-colmap"}  # name -> preset
 REFERENCE = "pycolmap"
@@ -75,7 +75,7 @@ class RoundPoses:
     label: str
     w2c: np.ndarray  # [N,4,4]
     valid: np.ndarray  # bool [N]: views this round placed and optimised
-    trained: dict | None = None  # posefree.load_round() output (traces, round.json) for trained rounds
+    trained: dict | None = None  # artifacts.load_round() output (traces, round.json) for trained rounds
 
 
 def neural_rounds(ptr: Pointers) -> list[RoundPoses]:
@@ -89,7 +89,7 @@ def neural_rounds(ptr: Pointers) -> list[RoundPoses]:
         dirs += sorted(successors.glob("round_*"), key=lambda p: int(p.name.split("_")[1]))
     out = [RoundPoses("initial", init["w2c"], init["placed"].astype(bool))]
     for d in dirs:
-        r = posefree.load_round(d)
+        r = artifacts.load_round(d)
         label = "anchors" if d.name == "round_0" else d.name
         out.append(RoundPoses(label, r["w2c"], r["placed"].astype(bool) & r["optimised"].astype(bool), r))
     return out

@@ -117,15 +117,6 @@ def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width
     (folder / "points3D.txt").write_text("# no points: poses only\n")
 
 
-def views_from_ingest(ingest_dir: Path, w2c: np.ndarray | None = None) -> Views:
-    arrays = io.load_arrays(ingest_dir / "views.zarr")
-    names = io.load_json(ingest_dir / "views.json")["names"]
-    n = len(names)
-    w2c = np.tile(np.eye(4), (n, 1, 1)) if w2c is None else w2c
-    return Views(arrays["images"], arrays["K"], w2c, arrays.get("masks"), arrays.get("mono_depth"),
-                 arrays.get("mono_normal"), names)
-
-
 def sim3_inverse(s: float, R: np.ndarray, t: np.ndarray):
     """Inverse of y = s R x + t."""
     return 1.0 / s, R.T, -R.T @ t / s

@@ -24,8 +24,8 @@ index in view j) and the relative pose of the essential matrix, camera i -> came
 ``x_j = R @ x_i + t`` with ``|t| = 1`` (``w2c_j = [R | t] @ w2c_i`` up to the scale of t).
 :func:`pairs_from_matches` builds the list from the arrays of ``matches.zarr``. Typical use::
 
-    feats, _ = stages.features.load_features(features_dir / "features.zarr")
-    arrays, _ = stages.matching.load_matches(matches_dir / "matches.zarr")
+    feats, _ = artifacts.load_features(features_dir / "features.zarr")
+    arrays, _ = artifacts.load_matches(matches_dir / "matches.zarr")
     pairs = pose_init.pairs_from_matches(arrays)
     kps = [f["keypoints"] for f in feats]
     res = pose_init.init_from_matches(anchors, K, kps, pairs, W)      # res.w2c [A,4,4], res.diagnostics
@@ -63,7 +63,7 @@ class PairMatch(NamedTuple):
 
 
 def pairs_from_matches(arrays: dict, min_inliers: int = 1) -> list[PairMatch]:
-    """``matches.zarr`` arrays (``stages.matching.load_matches(path)[0]``) -> list of :class:`PairMatch`
+    """``matches.zarr`` arrays (``artifacts.load_matches(path)[0]``) -> list of :class:`PairMatch`
     for the pairs with at least ``min_inliers`` verified inliers."""
     pairs = np.asarray(arrays["pairs"])
     off = np.asarray(arrays["inlier_offsets"])

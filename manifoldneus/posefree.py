@@ -38,10 +38,8 @@ class SceneInputs:
 
 
 def load_inputs(ctx) -> SceneInputs:
+    from manifoldneus.artifacts import load_features, load_matches, load_schedule
     from manifoldneus.pose_init import pairs_from_matches
-    from stages.features import load_features
-    from stages.matching import load_matches
-    from stages.schedule import load_schedule
 
     arrays = io.load_arrays(ctx.input("ingest") / "views.zarr")
     meta = io.load_json(ctx.input("ingest") / "views.json")
@@ -234,9 +232,3 @@ def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> Non
                                             "pose_trace": trace, "pose_grad_norm": grads}, chunk_first=False)
     rnd.trainer.save(out_dir / "model.pt")
     io.save_json(out_dir / "round.json", info)
-
-
-def load_round(round_dir: Path) -> dict:
-    out = io.load_arrays(round_dir / "poses.zarr")
-    out["info"] = io.load_json(round_dir / "round.json")
-    return out

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import evaluation, io, metrics, pose_metrics, posefree
+from manifoldneus import artifacts, evaluation, io, metrics, pose_metrics, posefree
 from manifoldneus.config import holdout_mask, param
 
 
@@ -35,10 +35,10 @@ OUTPUTS = ("evaluation.json", "pose_error_rounds.png")
 def _rounds(ctx) -> list[tuple[str, dict]]:
     """(label, poses) per row: the anchors' initial poses, then each round."""
     out = [("initial", io.load_arrays(ctx.input("anchors") / "initial_poses.zarr"))]
-    out.append(("anchors", posefree.load_round(ctx.input("anchors") / "round_0")))
+    out.append(("anchors", artifacts.load_round(ctx.input("anchors") / "round_0")))
     succ = ctx.input("successors")
     for d in sorted(succ.glob("round_*"), key=lambda p: int(p.name.split("_")[1])):
-        out.append((d.name, posefree.load_round(d)))
+        out.append((d.name, artifacts.load_round(d)))
     return out
 
 
@@ -135,7 +135,7 @@ def run(ctx) -> None:
         from manifoldneus import synthetic
 
         surf = gt["surface_points"]
-        views = evaluation.views_from_ingest(ctx.input("ingest"))
+        views = artifacts.load_views(ctx.input("ingest"))
         h, w = views.images.shape[1:3]
         ref_pts = surf[synthetic.points_visible(surf, views.K, gt["w2c"], h, w)]
         ref_label = "exact surface (observed part)"
@@ -155,9 +155,9 @@ def run(ctx) -> None:
     # --- novel views of held-out views
     held = np.flatnonzero(holdout_mask(len(names), ctx.section("split")))
     final_dir = ctx.input("successors") / "final"
-    final = posefree.load_round(final_dir)
+    final = artifacts.load_round(final_dir)
     if len(held):
-        views = evaluation.views_from_ingest(ctx.input("ingest"), final["w2c"])
+        views = artifacts.load_views(ctx.input("ingest"), final["w2c"])
         ids = np.flatnonzero(final["optimised"].astype(bool))
         trainer = evaluation.trainer_from_checkpoint(final_dir / "model.pt", posefree.subset_views(views, ids, final["w2c"]),
                                                      ctx.section("run").device)

@@ -18,7 +18,7 @@ view ``v`` owns rows ``offsets[v]:offsets[v + 1]``):
   stored with zero keypoints and every later stage treats them as unmatched.
 
 Attributes: ``names`` (view names), ``n_views``, ``root_sift``, ``pixel_convention``.
-Use :func:`load_features` to read it back as per-view lists.
+Use :func:`manifoldneus.artifacts.load_features` to read it back as per-view lists.
 """
 from __future__ import annotations
 
@@ -165,19 +165,6 @@ def pack_features(feats: list[dict]) -> dict:
     for key in ("keypoints", "scales", "orientations", "responses", "descriptors"):
         out[key] = np.concatenate([f[key] for f in feats], 0) if feats else empty_features()[key]
     return out
-
-
-def load_features(path: Path) -> tuple[list[dict], dict]:
-    """Read ``features.zarr`` -> (per-view list of dicts as :func:`extract_sift` returns, attrs)."""
-    arrays = load_arrays(Path(path))
-    attrs = load_attrs(Path(path))
-    off = arrays["offsets"]
-    feats = []
-    for v in range(len(off) - 1):
-        a, b = int(off[v]), int(off[v + 1])
-        feats.append({k: arrays[k][a:b] for k in ("keypoints", "scales", "orientations", "responses", "descriptors")})
-    attrs["featureless"] = arrays["featureless"]
-    return feats, attrs
 
 
 # --------------------------------------------------------------------------- stage

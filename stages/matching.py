@@ -34,7 +34,7 @@ Output ``matches.zarr`` (zarr v3 group), P pairs:
 - ``pose_valid``     bool    [P]
 
 Attributes: ``names``, ``n_views``, ``geometry`` ("essential" | "fundamental"),
-``pose_convention``. Read back with :func:`load_matches`.
+``pose_convention``. Read back with :func:`manifoldneus.artifacts.load_matches`.
 """
 from __future__ import annotations
 
@@ -325,17 +325,6 @@ def match_pairs(
         "model": np.array([r[4] for r in results], np.float64).reshape(-1, 3, 3),
         "pose_valid": np.array([r[5] for r in results], bool),
     }
-
-
-def load_matches(path: Path) -> tuple[dict, dict]:
-    """Read ``matches.zarr`` -> (arrays, attrs). Per pair p: ``inliers_of(arrays, p)``."""
-    return load_arrays(Path(path)), load_attrs(Path(path))
-
-
-def inliers_of(arrays: dict, p: int) -> np.ndarray:
-    """Verified matches [M,2] of pair index p (keypoint indices in views pairs[p])."""
-    off = arrays["inlier_offsets"]
-    return arrays["inlier_matches"][off[p] : off[p + 1]]
 
 
 # --------------------------------------------------------------------------- stage

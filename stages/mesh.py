@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from manifoldneus import evaluation, io, posefree
+from manifoldneus import artifacts, evaluation, io, posefree
 
 Params = evaluation.MeshParams
 UPSTREAM = ("ingest", "successors")
@@ -19,9 +19,9 @@ OUTPUTS = ("mesh.ply", "poses.zarr", "colmap")
 
 def run(ctx) -> None:
     final = ctx.input("successors") / "final"
-    result = posefree.load_round(final)
+    result = artifacts.load_round(final)
     w2c, placed = result["w2c"], result["placed"].astype(bool)
-    views = evaluation.views_from_ingest(ctx.input("ingest"), w2c)
+    views = artifacts.load_views(ctx.input("ingest"), w2c)
     ids = np.flatnonzero(result["optimised"].astype(bool))
     trainer = evaluation.trainer_from_checkpoint(final / "model.pt", posefree.subset_views(views, ids, w2c),
                                                  ctx.section("run").device)

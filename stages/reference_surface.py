@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import evaluation, io
+from manifoldneus import artifacts, evaluation, io
 from manifoldneus.config import holdout_mask, param
 from manifoldneus.train import Trainer
 
@@ -39,7 +39,7 @@ def run(ctx) -> None:
         io.save_json(ctx.out / "reference.json", {"trained": False, "why": why})
         return
     w2c = io.load_arrays(ctx.input("ground_truth") / "poses.zarr", ["w2c"])["w2c"]
-    views = evaluation.views_from_ingest(ctx.input("ingest"), w2c)
+    views = artifacts.load_views(ctx.input("ingest"), w2c)
     held = holdout_mask(len(views.names), ctx.section("split"))
     run_p = ctx.section("run")
     tp = ctx.section("train")

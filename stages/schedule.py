@@ -53,13 +53,6 @@ OUTPUTS = ("schedule.zarr", "schedule.json", "schedule.png")
 ROUND_COLOURS = ["#8c510a", "#1b9e77", "#969696", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d"]
 
 
-def load_schedule(schedule_dir) -> dict:
-    """Read a schedule artifact back: the arrays of ``schedule.zarr`` plus ``schedule.json`` under 'meta'."""
-    out = io.load_arrays(schedule_dir / "schedule.zarr")
-    out["meta"] = io.load_json(schedule_dir / "schedule.json")
-    return out
-
-
 def _colour(r: int) -> str:
     return ROUND_COLOURS[r % len(ROUND_COLOURS)] if r >= 0 else "white"
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from manifoldneus import pose_init, posefree
+from manifoldneus import artifacts, pose_init, posefree
 from manifoldneus.config import param
 
 
@@ -74,7 +74,7 @@ def run(ctx) -> None:
         ctx.log.info("successors.max_rounds = %d: rounds %d..%d are not run", p.max_rounds, p.max_rounds + 1, n_rounds)
         n_rounds = p.max_rounds
     prev_dir = ctx.input("anchors") / "round_0"
-    prev = posefree.load_round(prev_dir)
+    prev = artifacts.load_round(prev_dir)
     carry = {k: v for k, v in torch.load(prev_dir / "model.pt", map_location="cpu", weights_only=False).items()
              if k in ("field", "background", "cache")}
     w2c, placed = prev["w2c"], prev["placed"].astype(bool)

@@ -57,6 +57,11 @@ def test_rounds_and_evaluation(tiny_run):
     assert np.isfinite(ev["geometry"]["chamfer"]) and ev["novel_views"]["per_view"]
     colmap = current(artifacts, "mesh") / "colmap"
     assert (colmap / "images.txt").read_text().count(".png") == int(final["placed"].sum())
+    # every trained round checked its held-out tracks (the guard) and says whether it rolled back
+    for row in ev["poses"][1:]:
+        assert row["guard"]["checked"] and row["guard"]["kind"] == "reprojection" and row["guard"]["held_out"] > 0
+        assert isinstance(row["guard"]["fired"], bool) and "start_summary" in row
+    assert ev["placement"]["rot_err_deg"]["mean"] > 0  # the final views at the poses they were placed with
 
 
 def test_alpha_change_reruns_schedule_and_after_only(tiny_run):

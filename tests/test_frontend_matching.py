@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from manifoldneus import io
+from manifoldneus import artifacts, io
 from manifoldneus.cameras import decompose_projection, look_at_w2c, rotation_angle_deg
 from stages import covisibility, features, matching, reference
 from tests.conftest import SHARED_DATA, needs_dtu
@@ -280,14 +280,14 @@ def test_stage_chain_with_featureless_view(tmp_path, caplog):
     ctx = FakeCtx(features, tmp_path / "features", {"ingest": ingest})
     features.run(ctx)
     assert any("blank" in r.message and "featureless" in r.message for r in caplog.records if r.levelno == logging.WARNING)
-    feats, attrs = features.load_features(ctx.out / "features.zarr")
+    feats, attrs = artifacts.load_features(ctx.out / "features.zarr")
     assert attrs["names"] == names and list(attrs["featureless"]) == [False, False, False, True]
     assert len(feats[3]["keypoints"]) == 0 and all(len(f["keypoints"]) > 200 for f in feats[:3])
     assert ctx.metrics["n_featureless"] == 1
 
     mctx = FakeCtx(matching, tmp_path / "matching", {"ingest": ingest, "features": ctx.out})
     matching.run(mctx)
-    arrays, mattrs = matching.load_matches(mctx.out / "matches.zarr")
+    arrays, mattrs = artifacts.load_matches(mctx.out / "matches.zarr")
     assert mattrs["geometry"] == "essential" and len(arrays["pairs"]) == 6
     with_blank = (arrays["pairs"] == 3).any(1)
     assert (arrays["n_inliers"][with_blank] == 0).all() and (arrays["n_raw"][with_blank] == 0).all()
@@ -296,7 +296,7 @@ def test_stage_chain_with_featureless_view(tmp_path, caplog):
         i, j = arrays["pairs"][p]
         R_gt, _ = rel_pose(poses[i], poses[j])
         assert rotation_angle_deg(arrays["R"][p].T @ R_gt) < 1.0
-        assert len(matching.inliers_of(arrays, p)) == arrays["n_inliers"][p]
+        assert len(artifacts.inliers_of(arrays, p)) == arrays["n_inliers"][p]
     assert np.isfinite(arrays["R"]).all() and np.isfinite(arrays["t"]).all()
     assert mctx.metrics["pairs_ge15_inliers"] == 3
     # pairs with the blank view have no raw matches: not verified, and logged as such

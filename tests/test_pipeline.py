@@ -247,3 +247,10 @@ def test_exponent_floats_without_a_dot_are_numbers():
     assert resolved["anchors"].pose_lr == 5e-4
     with pytest.raises(ParamError, match="anchors.pose_lr: expected a number"):
         pipeline.resolve_params(stages, overrides=["anchors.pose_lr=fast"])
+
+
+def test_the_package_never_imports_the_stages():
+    """manifoldneus/ is the shared maths and readers; stages/ depend on it, never the reverse."""
+    for path in sorted((pipeline.ROOT / "manifoldneus").glob("*.py")):
+        names = pipeline._imported_names(path, f"manifoldneus.{path.stem}")
+        assert not [n for n in names if n == "stages" or n.startswith("stages.")], path.name
