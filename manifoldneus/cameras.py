@@ -114,6 +114,11 @@ def sim3_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return M
 
 
+def sim3_inverse(s: float, R: np.ndarray, t: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Inverse of the similarity y = s R x + t: (1/s, R^T, -R^T t / s)."""
+    return 1.0 / s, R.T, -R.T @ t / s
+
+
 def transform_w2c(w2c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Express world-to-camera poses in a new world frame ``y = s R x + t``.
 

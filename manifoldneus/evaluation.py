@@ -117,12 +117,7 @@ def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width
     (folder / "points3D.txt").write_text("# no points: poses only\n")
 
 
-def sim3_inverse(s: float, R: np.ndarray, t: np.ndarray):
-    """Inverse of y = s R x + t."""
-    return 1.0 / s, R.T, -R.T @ t / s
-
-
 def gt_in_model_frame(alignment: dict, w2c_gt: np.ndarray) -> np.ndarray:
     """GT poses expressed in the estimated (model) frame, through the inverse of the est -> gt Sim3."""
-    s, R, t = sim3_inverse(alignment["s"], np.asarray(alignment["R"]), np.asarray(alignment["t"]))
+    s, R, t = cameras.sim3_inverse(alignment["s"], np.asarray(alignment["R"]), np.asarray(alignment["t"]))
     return cameras.transform_w2c(w2c_gt, s, R, t)

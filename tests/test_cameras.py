@@ -70,3 +70,14 @@ def test_decompose_projection_roundtrip():
     K2, w2c2 = cameras.decompose_projection(K @ w2c[:3])
     np.testing.assert_allclose(K2, K, atol=1e-8)
     np.testing.assert_allclose(w2c2, w2c, atol=1e-9)
+
+
+def test_sim3_inverse_undoes_the_similarity():
+    rng = np.random.default_rng(0)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    R *= np.sign(np.linalg.det(R))
+    s, t = 2.5, rng.normal(size=3)
+    x = rng.normal(size=(5, 3))
+    y = s * x @ R.T + t
+    si, Ri, ti = cameras.sim3_inverse(s, R, t)
+    assert np.allclose(si * y @ Ri.T + ti, x)
