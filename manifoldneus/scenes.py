@@ -58,7 +58,8 @@ def resolve_scene(name: str, data_root: Path | None = None) -> SceneRef:
     if m:
         return SceneRef(name=name, kind="synthetic", seed=int(m.group(1) or 0))
     root = Path(data_root) if data_root is not None else default_data_root()
-    candidates = [Path(name), root / name, root / "dtu" / name]
+    # an absolute name makes root / name equal to it: list each place once
+    candidates = list(dict.fromkeys([Path(name), root / name, root / "dtu" / name]))
     for c in candidates:
         if c.is_dir():
             return SceneRef(name=c.resolve().name, kind="folder", path=c.resolve())

@@ -146,3 +146,11 @@ def test_view_stride_subsamples_views_and_ground_truth_alike(idr_folder, tiny_sy
     np.testing.assert_allclose(gt["w2c"], tiny_synthetic.w2c[::2], atol=1e-6)
     np.testing.assert_allclose(gt["normalization"], gt_of(idr_folder)["normalization"])  # same world frame
 
+
+
+def test_missing_scene_lists_each_place_once(tmp_path):
+    missing = tmp_path / "nowhere"
+    with pytest.raises(SceneError, match="not found") as e:
+        resolve_scene(str(missing), data_root=tmp_path)
+    looked_in = str(e.value).split("looked in:")[1]
+    assert looked_in.count(str(missing)) == 1
