@@ -50,7 +50,8 @@ def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_r
     """The pipeline for one seed, and what it measured."""
     over = [*overrides, f"run.seed={seed}"]
     t0 = time.time()
-    pipeline.run(scene, until="successors", overrides=over, artifacts=artifacts)
+    # first the rounds (the GT-pose NeuS off: its iteration count is known only after them)
+    pipeline.run(scene, until="successors", overrides=[*over, "reference_surface.enabled=false"], artifacts=artifacts)
     store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
     iters = rounds_total_iters(store)
     over += [f"reference_surface.iters={iters}"] if with_reference else ["reference_surface.enabled=false"]

@@ -80,7 +80,7 @@ class Round:
 
     def __init__(self, ctx, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
                  pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
-                 pose_start_frac: float = 0.0, correspondence_weight: float = 0.0):
+                 pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None):
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.full_K = inputs.views.K[self.ids]
@@ -111,6 +111,8 @@ class Round:
             band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,
                                                                 gate_p),
             pose_start=self.pose_start, pose_loss=self.corr,
+            # the views whose poses learn (default all of the round's): local indices into ids
+            pose_views=None if pose_ids is None else np.flatnonzero(np.isin(self.ids, np.asarray(pose_ids, int))),
         )
         if carry is not None:  # the field learned so far; poses restart at zero correction
             t = self.trainer

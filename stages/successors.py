@@ -28,6 +28,8 @@ class Params:
                                    lo=0.0, hi=1.0)
     pose_warmup_frac: float = param(0.1, "Pose lr warm-up as a fraction of a round", lo=0.0, hi=1.0)
     optimise_poses: bool = param(True, "Learn per-view pose corrections")
+    refine_placed: bool = param(True, "A round also refines the poses of the views earlier rounds placed (False: only "
+                                "its new views' poses learn; the earlier ones stay where their round left them)")
     correspondence_weight: float = param(0.01, "Weight of the correspondence term in a successor round's pose loss "
                                          "(smaller than the anchors': with many views the matches' own optimum is "
                                          "further from the truth than the images', docs/REFINEMENT.md)", lo=0.0)
@@ -126,7 +128,8 @@ def run(ctx) -> None:
         iters = p.final_iters if r == n_rounds and p.final_iters else p.iters
         rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters,
                              pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
-                             carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight)
+                             carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
+                             pose_ids=None if p.refine_placed else new)
         summary = rnd.run(ctx, f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt")
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,
