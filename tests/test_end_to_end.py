@@ -93,3 +93,19 @@ def test_max_rounds_stops_after_the_first_successor_round(tiny_run):
     assert sorted(p.name for p in succ.glob("round_*")) == ["round_1"]
     assert (succ / "final").resolve().name == "round_1"
     assert io.load_json(succ / "round_1" / "round.json")["train"]["steps"] == 45  # the last round run is final
+
+
+def test_refine_placed_off_learns_only_the_new_views(tiny_run):
+    artifacts, _ = tiny_run
+    report = pipeline.run("synthetic", overrides=TINY + ["successors.refine_placed=false", "successors.max_rounds=2"],
+                          until="successors", artifacts=artifacts)
+    assert report["anchors"] == "reused" and report["successors"] == "computed"
+    succ = current(artifacts, "successors")
+    r1, r2 = (np.asarray(io.load_arrays(succ / f"round_{r}" / "poses.zarr")["w2c"]) for r in (1, 2))
+    before = io.load_arrays(succ / "round_1" / "poses.zarr")["placed"].astype(bool)
+    new = io.load_json(succ / "round_2" / "round.json")["new_views"]
+    assert new and before.sum() > 0
+    # the views round 1 ended with keep their poses through round 2 (float32 round trip), the new ones moved
+    assert np.abs(r2[before] - r1[before]).max() < 1e-6
+    start = np.asarray(io.load_arrays(succ / "round_2" / "poses.zarr")["w2c_init"])
+    assert np.abs(r2[new] - start[new]).max() > 1e-6
