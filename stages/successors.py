@@ -40,9 +40,6 @@ class Params:
     max_rounds: int = param(0, "Stop after this many successor rounds (0 = all); later rounds' views stay unplaced "
                             "(the sweeps of bench/sweep.py only read round 1)", lo=0)
     pnp_min_inliers: int = param(12, "Fewer PnP inliers -> fallback to the best-matching optimised neighbour", lo=4)
-    rebundle: bool = param(False, "Each round starts every view it optimises (old and new) from one bundle adjustment "
-                           "of their verified matches, Sim3-aligned onto the current poses, instead of keeping the old "
-                           "views' poses and placing the new ones one by one")
 
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "anchors")
@@ -51,9 +48,8 @@ OUTPUTS = ("final",)
 
 
 def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: float) -> dict:
-    """Poses of placed + new views from an incremental SfM over them (verified matches only, bundle
-    adjusted), brought into the model's frame by the Sim3 that maps its placed views onto their
-    optimised poses; {view: w2c} for the views the SfM registered."""
+    """Poses of ``new_ids`` from an incremental SfM over placed + new views (verified matches only),
+    brought into the model's frame by the Sim3 that maps its placed views onto their optimised poses."""
     from manifoldneus import cameras
 
     ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
@@ -64,7 +60,7 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
         return {}
     s, R, t = cameras.umeyama_sim3(cameras.camera_centers(res.w2c[[row[v] for v in ok]]), cameras.camera_centers(w2c[ok]))
     moved = cameras.transform_w2c(res.w2c, s, R, t)
-    return {v: moved[row[v]] for v in ids if res.placed[row[v]]}
+    return {v: moved[row[v]] for v in new_ids if res.placed[row[v]]}
 
 
 def run(ctx) -> None:
@@ -118,13 +114,6 @@ def run(ctx) -> None:
             w2c[v] = pose
             placed[v] = True
         ids = np.flatnonzero(placed)
-        if p.rebundle:
-            if from_matches is None:
-                from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px)
-            moved = [v for v in ids if v in from_matches]
-            w2c[moved] = np.stack([from_matches[v] for v in moved]) if moved else w2c[moved]
-            ctx.log.info("round %d: %d of %d views start from the bundle adjustment of their matches", r, len(moved),
-                         len(ids))
         iters = p.final_iters if r == n_rounds and p.final_iters else p.iters
         rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters,
                              pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
