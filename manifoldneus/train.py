@@ -14,8 +14,8 @@ Hooks for the pose-free method:
   [N,6] learned by AdamW for ``pose_views`` (default: all training views), from step
   ``pose_start`` on (frozen before it, exactly, not rounded to the logging interval).
 * ``pose_loss(w2c [N,3,4], rng, step) -> scalar | None`` with a ``weight`` attribute: a term on the poses
-  alone (the verified matches' Sampson error, :mod:`manifoldneus.correspondence`), added to the
-  loss while poses are learned.
+  alone (the verified matches' tracks or epipolar errors, :mod:`manifoldneus.correspondence`),
+  added to the loss while poses are learned.
 
 Reproducibility: one seed drives every random draw (ray batches from ``self.rng``, sample jitter
 from torch's global generator); both generators' states, the loss average and the history are in
