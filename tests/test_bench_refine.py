@@ -30,3 +30,12 @@ def test_refinement_bench_two_seeds(tmp_path, capsys):
     assert {t["target"] for t in result["scenes"]["synthetic"]["targets"]} >= {
         "final <= 0.5 x initialisation", "spread over seeds <= 0.02 deg"}
     assert "| synthetic | 0,1 |" in printed and "±" in printed
+    # README's Results: the refinement table, and an older per-system bench named, not shown
+    from bench import results_md
+
+    scene_dir = tmp_path / "bench" / "scan24"
+    scene_dir.mkdir()
+    (scene_dir / "2020-01-01.json").write_text(json.dumps({"date": "2020-01-01T00:00:00", "systems": {}}))
+    md = results_md.results_markdown(tmp_path / "bench", root=tmp_path)
+    assert "### Refinement" in md and "| synthetic | 0,1 |" in md
+    assert "was measured before the joint rounds' correspondence term" in md
