@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from manifoldneus.cameras import _skew
 from manifoldneus.config import param
 
 
@@ -99,9 +100,7 @@ def sampson_px(w2c: torch.Tensor, ms: MatchSet, index: torch.Tensor) -> torch.Te
     R = Rb @ Ra.transpose(-1, -2)  # camera a -> camera b
     t = tb - (R @ ta[..., None])[..., 0]
     t = t / t.norm(dim=-1, keepdim=True).clamp_min(1e-9)  # the epipolar error does not see the baseline length
-    zero = torch.zeros_like(t[:, 0])
-    tx = torch.stack([zero, -t[:, 2], t[:, 1], t[:, 2], zero, -t[:, 0], -t[:, 1], t[:, 0], zero], -1).view(-1, 3, 3)
-    E = tx @ R  # [M,3,3]: xb^T E xa = 0
+    E = _skew(t) @ R  # [M,3,3]: xb^T E xa = 0
     xa, xb = ms.xa[index], ms.xb[index]
     Exa = (E @ xa[..., None])[..., 0]  # [M,3]
     Etxb = (E.transpose(-1, -2) @ xb[..., None])[..., 0]
@@ -195,11 +194,9 @@ class ReprojectionLoss:
             idx = idx[torch.randint(0, idx.numel(), (self.p.batch,), generator=rng).to(idx.device)]
         return cauchy(self._error(w2c, self.points, idx), self.p.robust_px).mean()
 
-    def held_out_error(self, w2c: torch.Tensor) -> float | None:
-        if self.held_index.numel() == 0:
-            return None
-        with torch.no_grad():
-            return float(cauchy(self._error(w2c, self._points(w2c), self.held_index), self.p.robust_px).mean())
+    def held_out_px(self, w2c: torch.Tensor) -> torch.Tensor:
+        """Pixel errors [H] of the held-out tracks, re-triangulated under ``w2c``."""
+        return self._error(w2c, self._points(w2c), self.held_index)
 
     def median_px(self, w2c: torch.Tensor, held_out: bool = True) -> float | None:
         idx = self.held_index if held_out else self.train_index
@@ -233,12 +230,9 @@ class CorrespondenceLoss:
             idx = idx[pick]
         return cauchy(sampson_px(w2c, self.ms, idx), self.p.robust_px).mean()
 
-    def held_out_error(self, w2c: torch.Tensor) -> float | None:
-        """Mean robust error (px^2) of the held-out matches, or None without any."""
-        if self.ms.held_index.numel() == 0:
-            return None
-        with torch.no_grad():
-            return float(cauchy(sampson_px(w2c, self.ms, self.ms.held_index), self.p.robust_px).mean())
+    def held_out_px(self, w2c: torch.Tensor) -> torch.Tensor:
+        """Sampson errors [H] (px) of the held-out matches under ``w2c``."""
+        return sampson_px(w2c, self.ms, self.ms.held_index)
 
     def median_px(self, w2c: torch.Tensor, held_out: bool = True) -> float | None:
         idx = self.ms.held_index if held_out else self.ms.train_index
@@ -251,11 +245,12 @@ class CorrespondenceLoss:
 def guard_check(loss, w2c_start: torch.Tensor, w2c_end: torch.Tensor, p: CorrespondenceParams) -> dict:
     """Held-out error (robust mean, px^2) under the start and end poses of a round; ``fired`` when the
     guard is on and the end exceeds the start by more than ``p.guard_tolerance`` (relative)."""
-    start, end = loss.held_out_error(w2c_start), loss.held_out_error(w2c_end)
-    out = {"checked": start is not None, "kind": p.kind, "held_out": loss.n_held_out, "start": start, "end": end,
-           "start_median_px": loss.median_px(w2c_start), "end_median_px": loss.median_px(w2c_end), "fired": False}
-    if start is None:
-        out["why"] = "no held-out correspondences"
-        return out
+    if loss.n_held_out == 0:
+        return {"checked": False, "kind": p.kind, "held_out": 0, "fired": False, "why": "no held-out correspondences"}
+    with torch.no_grad():
+        e_start, e_end = loss.held_out_px(w2c_start), loss.held_out_px(w2c_end)  # [H] px each
+    start, end = (float(cauchy(e, p.robust_px).mean()) for e in (e_start, e_end))
+    out = {"checked": True, "kind": p.kind, "held_out": loss.n_held_out, "start": start, "end": end,
+           "start_median_px": float(e_start.median()), "end_median_px": float(e_end.median()), "fired": False}
     out["fired"] = bool(p.guard and end > start * (1 + p.guard_tolerance))
     return out
