@@ -2,7 +2,7 @@
 """The supplement's experiments as sweep commands on the pipeline's cache.
 
     python bench/sweep.py TABLE [--scene scan24] [--values V ...] [--set section.key=value ...]
-                          [--profile fast|paper] [--artifacts DIR] [--out DIR]
+                          [--profile fast|paper] [--artifacts DIR] [--out DIR] [--tag NAME]
 
 TABLE (default values in brackets; ``--values`` picks others):
   A3      alpha of MaVOS                          [1.0 0.85 0.65 0.5 0.35]
@@ -369,25 +369,27 @@ def markdown(result: dict) -> str:
     ok = [r for r in rows if "errors" in r]
     units = next(((r["units"], r["units_per_scene_unit"]) for r in ok if r.get("units_per_scene_unit")), None)
     lines = [
-        f"### {t.name} on {result['scene']}: {t.title} (profile {result['profile']})",
+        f"### {t.name} on {result['scene']}: {result.get('title', t.title)} (profile {result['profile']})",
         "",
-        f"| setting | {' | '.join(c.header for c in COLUMNS)} | views anc. / succ. / all | wall s | cost s "
-        "| stages computed |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---|",
+        f"| setting | ΔR init. (deg) | {' | '.join(c.header for c in COLUMNS)} | views anc. / succ. / all | wall s "
+        "| cost s | stages computed |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
         if "errors" not in r:
-            lines.append(f"| {r['label']} | failed: {r['error'].splitlines()[0].replace('|', '/')} | | | | | | | |")
+            lines.append(f"| {r['label']} | failed: {r['error'].splitlines()[0].replace('|', '/')} | | | | | | | | |")
             continue
         paper = t.paper.get(r["label"], (None,) * 4)
         cells = [_cell(r["errors"][c.key], paper[i], c.digits) for i, c in enumerate(COLUMNS)]
         counts = (r["views"]["anchors"], r["views"]["first_successor_round"], r["views"]["total"])
         views = " / ".join("–" if n is None else str(n) for n in counts)
-        lines.append(f"| {r['label']} | {' | '.join(cells)} | {views} | {r['wall_seconds']:.1f} "
+        initial = next((x["summary"]["rot_err_deg"]["mean"] for x in r.get("rounds", [])
+                        if x["label"] == "initial"), None)
+        lines.append(f"| {r['label']} | {_cell(initial, None, 3)} | {' | '.join(cells)} | {views} | {r['wall_seconds']:.1f} "
                      f"| {r['cost_seconds']:.1f} | {_computed(r['stages'])} |")
     lines += [
         "",
-        "ΔR: rotation error (deg); ΔT: camera-centre error in the object-normalised frame (object inside the "
+        "ΔR init.: the anchors' initial poses (after any `anchors.perturb_*`); ΔR: rotation error (deg); ΔT: camera-centre error in the object-normalised frame (object inside the "
         "unit sphere" + (f"; 1 unit = {units[1]:.4g} {units[0]}" if units and units[0] != "unit" else "")
         + "); both after Sim3 alignment, "
         "mean over the views optimised in the anchor round (anc.) and in the first successor round (succ.), "
@@ -411,17 +413,18 @@ def markdown(result: dict) -> str:
 
 def run_sweep(table: str, scene: str = "scan24", values: list[str] | None = None, overrides: list[str] = (),
               artifacts: Path = pipeline.DEFAULT_ARTIFACTS, profile: str | None = None, data_root=None,
-              out_root: Path = ROOT / "bench") -> dict:
+              out_root: Path = ROOT / "bench", tag: str = "") -> dict:
     """Run every setting of a table, print its markdown table, write the JSON; returns the result."""
     settings = settings_for(table, values)
     stages = pipeline.load_stages()
     for s in settings:  # every override is checked before hours of computing start
         resolved = pipeline.resolve_params(stages, pipeline.DEFAULT_PARAMS, [*overrides, *s.overrides], profile)
     scene_name = pipeline.resolve_scene(scene, data_root).name
-    out = Path(out_root) / scene_name / f"sweep_{table}_{dt.date.today().isoformat()}.json"
+    name = "_".join(["sweep", table, *([tag] if tag else []), dt.date.today().isoformat()])
+    out = Path(out_root) / scene_name / f"{name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     result = {
-        "table": table, "title": TABLES[table].title, "scene": scene, "profile": resolved["_profile"],
+        "table": table, "title": TABLES[table].title + (f" [{tag}]" if tag else ""), "tag": tag, "scene": scene, "profile": resolved["_profile"],
         "date": dt.datetime.now().isoformat(timespec="seconds"),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
         "overrides": list(overrides), "artifacts": str(artifacts), "paper_source": TABLES[table].source,
@@ -463,6 +466,8 @@ def main(argv=None) -> int:
     ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
     ap.add_argument("--data-root", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=ROOT / "bench", help="JSON to OUT/<scene>/sweep_<TABLE>_<date>.json")
+    ap.add_argument("--tag", default="", help="names a variant of the table (e.g. 'perturbed'): "
+                    "OUT/<scene>/sweep_<TABLE>_<tag>_<date>.json, and the title says it")
     ap.add_argument("--all-rounds", action="store_true",
                     help="run every successor round (default: stop after round 1, all the tables read; half the time)")
     args = ap.parse_args(argv)
@@ -471,7 +476,7 @@ def main(argv=None) -> int:
     overrides = args.overrides if args.all_rounds else [*stop, *args.overrides]
     try:
         result = run_sweep(args.table, args.scene, args.values, overrides, args.artifacts, args.profile,
-                           args.data_root, args.out)
+                           args.data_root, args.out, args.tag)
     except (SweepError, ParamError, SceneError, pipeline.PipelineError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

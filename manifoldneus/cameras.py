@@ -134,6 +134,28 @@ def transform_w2c(w2c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np
     return out
 
 
+def perturb_w2c(w2c: np.ndarray, rot_deg: tuple[float, float], centre_offset: float,
+                rng: np.random.Generator) -> np.ndarray:
+    """Poses with each camera turned by an angle drawn uniformly from ``rot_deg`` (lo, hi) about a
+    random axis (in its own frame) and its centre moved by ``centre_offset`` in a random direction:
+    BARF's synthetic pose noise, for experiments from a perturbed start. Returns [N,4,4]."""
+    from scipy.spatial.transform import Rotation
+
+    w2c = to_4x4(w2c)
+    n = len(w2c)
+    axes = rng.normal(size=(n, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.radians(rng.uniform(rot_deg[0], rot_deg[1], size=n))
+    shifts = rng.normal(size=(n, 3))
+    shifts *= centre_offset / np.linalg.norm(shifts, axis=1, keepdims=True)
+    R = Rotation.from_rotvec(axes * angles[:, None]).as_matrix() @ w2c[:, :3, :3]  # [N,3,3]
+    C = camera_centers(w2c) + shifts  # [N,3]
+    out = np.tile(np.eye(4), (n, 1, 1))
+    out[:, :3, :3] = R
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", R, C)
+    return out
+
+
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
     """Geodesic angle of rotation matrices [...,3,3] in degrees."""
     cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from manifoldneus import io, pose_init, posefree
-from manifoldneus.config import param
+from manifoldneus.config import ParamError, param
 
 
 @dataclass
@@ -37,6 +37,16 @@ class Params:
     gauge_radius: float = param(0.8, "Robust radius the anchors' points are scaled to (object in the unit sphere)",
                                 lo=0.1, hi=1.0)
     identity_distance: float = param(3.0, "identity init: distance of the canonical camera from the origin", lo=0.5)
+    perturb_rot_deg: list[float] = param([0.0, 0.0], "Experiments from a perturbed start (BARF): each anchor's initial "
+                                         "rotation is turned by an angle drawn from [lo, hi] deg about a random axis "
+                                         "(seeded by run.seed); [0, 0] = no perturbation", lo=0.0, hi=90.0)
+    perturb_centre_frac: float = param(0.0, "Experiments from a perturbed start: each anchor's initial centre moves "
+                                       "by this fraction of the anchors' mean distance from the origin, in a random "
+                                       "direction", lo=0.0, hi=1.0)
+
+    def __post_init__(self):
+        if len(self.perturb_rot_deg) != 2 or self.perturb_rot_deg[0] > self.perturb_rot_deg[1]:
+            raise ParamError(f"anchors.perturb_rot_deg: expected [lo, hi] with lo <= hi, got {self.perturb_rot_deg}")
 
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "reference")
@@ -88,6 +98,14 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
                  "unplaced": [inputs.names[v] for v in res.unplaced], **res.diagnostics}
 
 
+def perturbed(w2c: np.ndarray, p: Params, seed: int) -> np.ndarray:
+    from manifoldneus import cameras
+
+    distance = float(np.linalg.norm(cameras.camera_centers(w2c), axis=1).mean())
+    return cameras.perturb_w2c(w2c, tuple(p.perturb_rot_deg), p.perturb_centre_frac * distance,
+                               np.random.default_rng(seed))
+
+
 def run(ctx) -> None:
     p: Params = ctx.params
     inputs = posefree.load_inputs(ctx)
@@ -98,6 +116,11 @@ def run(ctx) -> None:
                            f"split.holdout_every")
     n = len(inputs.names)
     w2c0, init_info = initial_poses(ctx, inputs, anchors, p)
+    if max(p.perturb_rot_deg, default=0.0) > 0 or p.perturb_centre_frac > 0:
+        w2c0[anchors] = perturbed(w2c0[anchors], p, ctx.section("run").seed)
+        init_info["perturbed"] = {"rot_deg": list(p.perturb_rot_deg), "centre_frac": p.perturb_centre_frac}
+        ctx.log.info("anchors: initial poses perturbed by %s deg and %g of their distance (anchors.perturb_*)",
+                     p.perturb_rot_deg, p.perturb_centre_frac)
     placed = np.zeros(n, bool)
     placed[anchors] = True
     io.save_arrays(ctx.out / "initial_poses.zarr", {"w2c": w2c0, "placed": placed}, chunk_first=False)

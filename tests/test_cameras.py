@@ -81,3 +81,16 @@ def test_sim3_inverse_undoes_the_similarity():
     y = s * x @ R.T + t
     si, Ri, ti = cameras.sim3_inverse(s, R, t)
     assert np.allclose(si * y @ Ri.T + ti, x)
+
+
+def test_perturbed_poses_turn_and_move_by_the_asked_amounts():
+    rng = np.random.default_rng(0)
+    eyes = rng.normal(size=(20, 3)) * 3
+    w2c = np.stack([cameras.look_at_w2c(e, np.zeros(3), np.array([0.0, 0.0, 1.0])) for e in eyes])
+    out = cameras.perturb_w2c(w2c, (3.0, 5.0), 0.15, np.random.default_rng(1))
+    turn = cameras.rotation_angle_deg(out[:, :3, :3] @ np.swapaxes(w2c[:, :3, :3], 1, 2))
+    assert np.all((turn >= 3.0 - 1e-9) & (turn <= 5.0 + 1e-9)) and turn.std() > 0.1
+    shift = np.linalg.norm(cameras.camera_centers(out) - eyes, axis=1)
+    np.testing.assert_allclose(shift, 0.15, atol=1e-9)
+    np.testing.assert_allclose(out[:, :3, :3] @ np.swapaxes(out[:, :3, :3], 1, 2), np.tile(np.eye(3), (20, 1, 1)),
+                               atol=1e-12)

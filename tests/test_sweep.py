@@ -97,6 +97,18 @@ def test_sparse_views(dirs, capsys):
     assert second["stages"]["ingest"] == second["stages"]["ground_truth"] == "computed"
 
 
+def test_a_tagged_sweep_from_perturbed_anchors(dirs, capsys):
+    artifacts, out = dirs
+    result = sweep.run_sweep("A3", "synthetic", ["0.65"], [*SWEEP_TINY, "anchors.perturb_rot_deg=[3,5]",
+                                                           "anchors.perturb_centre_frac=0.05"],
+                             artifacts, out_root=out, tag="perturbed")
+    assert Path(result["json"]).name.startswith("sweep_A3_perturbed_") and "[perturbed]" in result["markdown"]
+    (row,) = result["settings"]
+    initial = next(r for r in row["rounds"] if r["label"] == "initial")["summary"]["rot_err_deg"]["mean"]
+    assert initial > 2.0  # the synthetic scene's matches give ~0.2 deg; the perturbation adds 3-5 deg
+    assert f"| {initial:.3f} |" in capsys.readouterr().out
+
+
 def test_every_default_setting_resolves():
     """Each table's settings are valid overrides and distinct (no run needed)."""
     stages = pipeline.load_stages()
@@ -134,7 +146,7 @@ def test_table_with_a_failed_row_and_the_trend_against_the_paper():
             {"label": "alpha = 0.50", "error": "RuntimeError: no anchors\nat line 3"}]
     text = sweep.markdown({"table": "A3", "scene": "scan24", "profile": "fast", "settings": rows})
     # the supplement's values beside ours, also where ours are missing
-    assert "| alpha = 0.65 | 1.000 [3.883] | – [1.076] | – [0.225] | – [0.050] | 15 / – / 49 |" in text
+    assert "| alpha = 0.65 | – | 1.000 [3.883] | – [1.076] | – [0.225] | – [0.050] | 15 / – / 49 |" in text
     assert "| alpha = 0.50 | failed: RuntimeError: no anchors |" in text and "1 unit = 150 mm" in text
     # ours rank 1.00 > 0.35 > 0.65, the supplement's 0.35 > 1.00 > 0.65
     assert "ΔR anc. (deg): lowest here `alpha = 0.65`, lowest in the supplement `alpha = 0.65`; " \
