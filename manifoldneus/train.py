@@ -73,7 +73,8 @@ class TrainParams:
     ckpt_every: int = param(200, "Keep a rollback state (and write the checkpoint file, if any) every N iterations", lo=1)
     rollback_lr_factor: float = param(0.5, "Multiply the lr by this after a NaN/divergence rollback", lo=0.0, hi=1.0)
     max_rollbacks: int = param(5, "Give up after this many rollbacks", lo=0)
-    diverge_factor: float = param(20.0, "A loss above this times its running mean counts as divergence", lo=1.0)
+    diverge_factor: float = param(20.0, "A field loss (the pose term excluded) above this times its running mean "
+                                  "counts as divergence", lo=1.0)
     pose_jump_deg: float = param(30.0, "A learned pose that turns by more than this between two rollback states (or "
                                  "becomes non-finite) counts as divergence (0 = no check)", lo=0.0)
     log_every: int = param(100, "Log every N iterations", lo=1)
@@ -462,6 +463,7 @@ class Trainer:
         out = render_rays(self.field, b["o"], b["d"], self.rp, cache=self.cache, background=self.background,
                           band_weights=bw, perturb=True, train=True, want_normals=True)
         total, terms, status = compute_losses(out, b, self.lp)
+        field_loss = float(total.detach())  # what the divergence check watches (the pose term jumps by design)
         if self.pose_loss is not None and self.pose_opt is not None and self.step >= self.pose_start:
             extra = self.pose_loss(self.poses(), self.rng, self.step)
             if extra is not None:
@@ -474,10 +476,13 @@ class Trainer:
         if not math.isfinite(lv):
             self._rollback("non-finite loss")
             return {"rollback": True}
-        if self._loss_ema is not None and self.step > self.tp.warmup and lv > self.tp.diverge_factor * self._loss_ema:
-            self._rollback(f"loss {lv:.4g} > {self.tp.diverge_factor} x running mean {self._loss_ema:.4g}")
+        # The field's loss only: the pose term enters at pose_start, at a size set by how far the
+        # initial poses are from the matches (a perturbed start: 20x the field's), and is not a divergence.
+        if (self._loss_ema is not None and self.step > self.tp.warmup
+                and field_loss > self.tp.diverge_factor * self._loss_ema):
+            self._rollback(f"loss {field_loss:.4g} > {self.tp.diverge_factor} x running mean {self._loss_ema:.4g}")
             return {"rollback": True}
-        self._loss_ema = lv if self._loss_ema is None else 0.98 * self._loss_ema + 0.02 * lv
+        self._loss_ema = field_loss if self._loss_ema is None else 0.98 * self._loss_ema + 0.02 * field_loss
         self.opt.zero_grad(set_to_none=True)
         if self.pose_opt is not None:
             self.pose_opt.zero_grad(set_to_none=True)

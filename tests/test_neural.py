@@ -256,6 +256,24 @@ def test_pose_jump_rolls_back_to_the_last_good_state():
     assert tr.pose_jump() == "non-finite pose correction"
 
 
+def test_a_large_pose_term_switching_on_is_not_a_divergence():
+    """The correspondence term enters at pose_start at its own scale (a perturbed start: ~20x the
+    field's loss); the divergence check watches the field's loss, so no rollback follows."""
+    views = synthetic_views(n=4, size=16)
+    fp, rp, tp = tiny_params(30)
+    tp = dataclasses.replace(tp, learn_poses=True, pose_lr=1e-3)
+
+    class HugePoseTerm:
+        weight = 1.0
+
+        def __call__(self, w2c, rng, step):
+            return 1e3 + 0.0 * w2c.sum()
+
+    tr = Trainer(views, fp, rp, LossParams(), tp, pose_start=15, pose_loss=HugePoseTerm())
+    tr.train()
+    assert tr.step == 30 and tr.rollbacks == 0 and tr.history[-1]["loss"] > 1e3
+
+
 def test_band_weights_interface():
     for kind in ("grid", "mlp"):
         fp = FieldParams(kind=kind, mlp_width=128, mlp_depth=4, mlp_skip=-1, color_width=16, color_depth=1,

@@ -1,0 +1,87 @@
+"""One fingerprint, one result: the pipeline run twice from an empty cache writes the same
+artifacts, and a run interrupted inside a successor round and resumed from its checkpoint ends
+exactly where the uninterrupted run does (issue 11, item 3). Tiny synthetic scene, CPU."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import pipeline
+from manifoldneus import artifacts as readers
+from manifoldneus import io
+from manifoldneus.train import Trainer
+from tests.test_end_to_end import TINY
+
+# a checkpoint every 10 iterations, so the interruption below falls between two of them
+REPRO = [*TINY, "train.ckpt_every=10"]
+UNTIL = "successors"
+
+
+def version(root, stage):
+    store = pipeline.Store(root, "synthetic")
+    return store.version_dir(stage, store.current(stage))
+
+
+def outputs(root) -> dict:
+    """What each stage up to the successors wrote that later stages read."""
+    feats, _ = readers.load_features(version(root, "features") / "features.zarr")
+    matches, _ = readers.load_matches(version(root, "matching") / "matches.zarr")
+    out = {"keypoints": [f["keypoints"] for f in feats], "matches": [matches[k] for k in sorted(matches)],
+           "reference": io.load_arrays(version(root, "reference") / "poses.zarr")["w2c"],
+           "schedule": readers.load_schedule(version(root, "schedule"))["round"]}
+    for stage, rnd in (("anchors", "round_0"), ("successors", "final")):
+        d = version(root, stage) / rnd
+        out[f"{stage}_w2c"] = readers.load_round(d)["w2c"]
+        model = torch.load(d / "model.pt", map_location="cpu", weights_only=False)
+        out[f"{stage}_field"] = [t.numpy() for t in model["field"].values()]
+    return out
+
+
+def assert_same(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        xs, ys = (a[key], b[key]) if isinstance(a[key], list) else ([a[key]], [b[key]])
+        assert len(xs) == len(ys), key
+        for x, y in zip(xs, ys):
+            assert np.array_equal(x, y), f"{key} differs: max |diff| {np.abs(np.asarray(x) - np.asarray(y)).max()}"
+
+
+@pytest.fixture(scope="module")
+def first(tmp_path_factory):
+    root = tmp_path_factory.mktemp("repro") / "first"
+    pipeline.run("synthetic", until=UNTIL, overrides=REPRO, artifacts=root)
+    return outputs(root)
+
+
+def test_two_runs_from_an_empty_cache_write_the_same_artifacts(first, tmp_path):
+    pipeline.run("synthetic", until=UNTIL, overrides=REPRO, artifacts=tmp_path / "second")
+    assert_same(first, outputs(tmp_path / "second"))
+
+
+def test_interrupted_and_resumed_equals_uninterrupted(first, tmp_path, monkeypatch):
+    root = tmp_path / "interrupted"
+    pipeline.run("synthetic", until="anchors", overrides=REPRO, artifacts=root)
+    step = Trainer.train_step
+    hits = []
+
+    def killed(self, *args, **kwargs):  # a kill between two checkpoints of the last successor round
+        if self.checkpoint_path is not None and self.checkpoint_path.name == "round_2.pt" and self.step == 15:
+            hits.append(self.step)
+            raise KeyboardInterrupt
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(Trainer, "train_step", killed)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run("synthetic", until=UNTIL, overrides=REPRO, artifacts=root)
+    assert hits == [15]
+    store = pipeline.Store(root, "synthetic")
+    assert store.current(UNTIL) is None  # nothing published
+    (ckpt_dir,) = store.stage_dir(UNTIL).glob(".ckpt-*")
+    assert {p.name for p in ckpt_dir.iterdir()} >= {"round_1.pt", "round_2.pt"}
+
+    monkeypatch.setattr(Trainer, "train_step", step)
+    pipeline.run("synthetic", until=UNTIL, overrides=REPRO, artifacts=root)
+    log = (version(root, UNTIL) / "log.txt").read_text()
+    assert "round 2: resumed from round_2.pt at step 10" in log
+    assert_same(first, outputs(root))
