@@ -6,15 +6,23 @@
     python pipeline.py status --scene S
     python pipeline.py show --scene S STAGE
     python pipeline.py params-diff --scene S STAGE
+    python pipeline.py verify --scene S
     python pipeline.py gc [--scene S]
 
 Artifact layout: ``artifacts/<scene>/<stage>/<fingerprint>/`` (files + ``manifest.json`` +
 ``log.txt``) and ``artifacts/<scene>/<stage>/current`` (symlink to the version in use).
 A fingerprint hashes the stage's resolved parameter sections, the source of the stage module
 and of every ``manifoldneus``/``stages`` module it can import (module level or inside a function),
-and the fingerprints of its upstream stages
-(plus, for ``ingest``, a signature of the input files). Versions are written to a temporary
-folder and renamed when complete, so an interrupted run never leaves a version that looks done.
+and the content of its upstream stages' outputs (plus, for ``ingest``, a signature of the input
+files). Versions are written to a temporary folder and renamed when complete, so an interrupted
+run never leaves a version that looks done.
+
+Each manifest records the size and SHA-256 of every output file and one content digest over them.
+Downstream fingerprints use that digest, not the upstream's fingerprint (DVC's run-cache idea): an
+upstream recomputed to the same bytes (a comment-only code change) leaves its downstream fresh.
+``status`` and ``run`` check presence and sizes of every file they trust (cheap); ``verify``
+re-hashes them. A damaged version is never read: the run stops and names the file and the command
+that rebuilds it.
 """
 from __future__ import annotations
 
@@ -56,6 +64,7 @@ from manifoldneus.scenes import SceneError, resolve_scene  # noqa: E402
 DEFAULT_ARTIFACTS = ROOT / "artifacts"
 DEFAULT_PARAMS = ROOT / "params.yaml"
 MANIFEST = "manifest.json"
+LOG = "log.txt"
 LIBRARIES = ("numpy", "scipy", "torch", "cv2", "pycolmap", "skimage", "trimesh", "zarr", "roma")
 
 
@@ -220,21 +229,67 @@ def stage_params(stage: Stage, resolved: dict) -> dict:
     return {s: config.as_dict(resolved[s]) for s in stage.sections}
 
 
-def compute_fingerprints(stages: dict[str, Stage], resolved: dict, scene) -> dict[str, dict]:
-    """Per stage: fingerprint and the ingredients that made it (for status and params-diff)."""
+def own_ingredients(stages: dict[str, Stage], resolved: dict, scene) -> dict[str, dict]:
+    """Per stage, what its fingerprint hashes besides its upstream: params, code, input files."""
+    out = {}
+    for name, stage in stages.items():
+        out[name] = {"params": stage_params(stage, resolved), "code": code_hash(stage)}
+        if hasattr(stage.module, "input_signature"):
+            out[name]["inputs"] = stage.module.input_signature(scene, resolved[stage.sections[0]])
+    return out
+
+
+def chain_fingerprints(stages: dict[str, Stage], own: dict[str, dict], store: Store | None = None) -> dict[str, dict]:
+    """Per stage: fingerprint and the ingredients that made it (for status and params-diff).
+
+    An upstream enters by the content digest of its version when that version exists in ``store``
+    (so equal bytes give equal downstream fingerprints), else by its fingerprint."""
     out: dict[str, dict] = {}
     for name, stage in stages.items():
-        ingredients = {
-            "params": stage_params(stage, resolved),
-            "code": code_hash(stage),
-            "upstream": {u: out[u]["fingerprint"] for u in stage.upstream},
-        }
-        if hasattr(stage.module, "input_signature"):
-            ingredients["inputs"] = stage.module.input_signature(scene, resolved[stage.sections[0]])
+        upstream = {u: out[u]["fingerprint"] for u in stage.upstream}
+        content = {u: (store.content(u, fp) if store is not None else None) or f"recipe:{fp}" for u, fp in upstream.items()}
+        ingredients = {**own[name], "upstream_content": content}
         blob = json.dumps(ingredients, sort_keys=True, default=str).encode()
-        ingredients["fingerprint"] = hashlib.sha256(blob).hexdigest()[:12]
-        out[name] = ingredients
+        out[name] = {**ingredients, "upstream": upstream, "fingerprint": hashlib.sha256(blob).hexdigest()[:12]}
     return out
+
+
+def compute_fingerprints(stages: dict[str, Stage], resolved: dict, scene, store: Store | None = None) -> dict[str, dict]:
+    return chain_fingerprints(stages, own_ingredients(stages, resolved, scene), store)
+
+
+# ---------------------------------------------------------------------------- output content
+
+
+def file_digests(folder: Path) -> dict[str, dict]:
+    """Size and SHA-256 of every file under ``folder`` (symlinks by their target), the manifest
+    and the log excluded: {relative path: {"size", "sha256"} | {"link"}}."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(folder):
+        here = Path(dirpath)
+        for name in sorted(filenames + [d for d in dirnames if (here / d).is_symlink()]):
+            path = here / name
+            rel = path.relative_to(folder).as_posix()
+            if rel in (MANIFEST, LOG):
+                continue
+            if path.is_symlink():
+                out[rel] = {"link": os.readlink(path)}
+                continue
+            out[rel] = {"size": path.stat().st_size, "sha256": sha256_of(path)}
+    return out
+
+
+def sha256_of(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def content_digest(files: dict[str, dict]) -> str:
+    blob = json.dumps({k: v.get("sha256", v.get("link")) for k, v in files.items()}, sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
 
 
 # ---------------------------------------------------------------------------- store
@@ -277,6 +332,30 @@ class Store:
             tmp.unlink()
         os.symlink(fingerprint, tmp)
         os.replace(tmp, self.stage_dir(stage) / self.pointer)
+
+    def content(self, stage: str, fingerprint: str) -> str | None:
+        """The content digest of a complete version (None: absent, or written before digests)."""
+        if not self.is_complete(stage, fingerprint):
+            return None
+        return self.manifest(stage, fingerprint).get("content")
+
+    def damage(self, stage: str, fingerprint: str, deep: bool = False) -> list[str]:
+        """What is wrong with a version's files against its manifest: missing files and wrong sizes
+        (cheap), and with ``deep`` also content that no longer matches its hash. [] = intact."""
+        folder = self.version_dir(stage, fingerprint)
+        problems = []
+        for rel, rec in self.manifest(stage, fingerprint).get("files", {}).items():
+            path = folder / rel
+            if "link" in rec:
+                if not path.is_symlink() or os.readlink(path) != rec["link"]:
+                    problems.append(f"{path}: the link to {rec['link']} is gone")
+            elif not path.is_file():
+                problems.append(f"{path}: missing")
+            elif path.stat().st_size != rec["size"]:
+                problems.append(f"{path}: {path.stat().st_size} bytes, {rec['size']} when written")
+            elif deep and sha256_of(path) != rec["sha256"]:
+                problems.append(f"{path}: content differs from its hash when written")
+        return problems
 
     def manifest(self, stage: str, fingerprint: str | None = None) -> dict | None:
         fingerprint = fingerprint or self.current(stage)
@@ -404,7 +483,7 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
     tmp = store.stage_dir(stage.name) / f".tmp-{fp}-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    log, handler = _stage_logger(stage.name, tmp / "log.txt")
+    log, handler = _stage_logger(stage.name, tmp / LOG)
     ctx = Context(stage, resolved, store, fps[stage.name]["upstream"], tmp, scene, log, fp)
     log.info("stage %s, scene %s, fingerprint %s", stage.name, scene.name, fp)
     started = time.time()
@@ -424,6 +503,7 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
             "params": fps[stage.name]["params"],
             "code": fps[stage.name]["code"],
             "upstream": fps[stage.name]["upstream"],
+            "upstream_content": fps[stage.name]["upstream_content"],
             "inputs": fps[stage.name].get("inputs"),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(started)),
             "wall_seconds": round(time.time() - started, 3),
@@ -433,6 +513,8 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
             "metrics": ctx.metrics,
             "outputs": sorted(p.name for p in tmp.iterdir() if p.name not in (MANIFEST,)),
         }
+        manifest["files"] = file_digests(tmp)
+        manifest["content"] = content_digest(manifest["files"])
         log.info("done in %.1f s, peak %.0f MiB", manifest["wall_seconds"], manifest["peak_rss_mib"])
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
     except BaseException:
@@ -450,6 +532,14 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
     tmp.rename(final)
     shutil.rmtree(ctx.checkpoint_dir, ignore_errors=True)
     return final
+
+
+def _refuse_damaged(store: Store, stage: str, fingerprint: str, scene_name: str) -> None:
+    problems = store.damage(stage, fingerprint)
+    if problems:
+        raise PipelineError(f"{stage} version {fingerprint} is damaged ({problems[0]}"
+                            f"{f', and {len(problems) - 1} more' if len(problems) > 1 else ''}); rebuild it: "
+                            f"python pipeline.py run --scene {scene_name} --until {stage} --force {stage}")
 
 
 def select(stages: dict[str, Stage], until: str | None, only: str | None) -> list[str]:
@@ -483,13 +573,14 @@ def run(
             raise PipelineError(f"unknown stage {f!r} for --force (stages: {', '.join(stages)})")
     scene = resolve_scene(scene_name, data_root)
     resolved = resolve_params(stages, params_path, overrides, profile, preset)
-    fps = compute_fingerprints(stages, resolved, scene)
     store = Store(artifacts, scene.name, preset)
+    own = own_ingredients(stages, resolved, scene)
     selected = select(stages, until, only)
     report: dict[str, str] = {}
     with store.lock():
         for name in selected:
             stage = stages[name]
+            fps = chain_fingerprints(stages, own, store)  # upstream stages just run enter by their content
             fp = fps[name]["fingerprint"]
             for up in stage.upstream:
                 if up not in selected and not store.is_complete(up, fps[up]["fingerprint"]):
@@ -497,7 +588,9 @@ def run(
                         f"stage {name} needs {up} with the current parameters, which has not been computed; "
                         f"run: python pipeline.py run --scene {scene_name} --until {name}"
                     )
+                _refuse_damaged(store, up, fps[up]["fingerprint"], scene_name)
             if store.is_complete(name, fp) and name not in force:
+                _refuse_damaged(store, name, fp, scene_name)
                 store.set_current(name, fp)
                 report[name] = "reused"
                 print(f"[{name}] up to date ({fp})", file=sys.stderr)
@@ -531,7 +624,8 @@ def explain(stage: str, fps: dict, store: Store) -> tuple[str, list[str]]:
     expected = fps[stage]["fingerprint"]
     current = store.current(stage)
     if current == expected:
-        return "fresh", []
+        problems = store.damage(stage, current)
+        return ("damaged", [*problems, f"rebuild: run --force {stage}"]) if problems else ("fresh", [])
     if current is None:
         if store.is_complete(stage, expected):
             return "cached", ["a complete version for these parameters exists; `run` reuses it"]
@@ -544,9 +638,10 @@ def explain(stage: str, fps: dict, store: Store) -> tuple[str, list[str]]:
             reasons.append(f"param {key}: {old_p.get(key, '<absent>')!r} -> {now_p.get(key, '<absent>')!r}")
     if old.get("code") != fps[stage]["code"]:
         reasons.append("code of the stage (or a module it uses) changed")
-    for up, fp in fps[stage]["upstream"].items():
-        if old.get("upstream", {}).get(up) != fp:
-            reasons.append(f"upstream {up} changed")
+    for up, content in fps[stage]["upstream_content"].items():
+        if old.get("upstream_content", {}).get(up) != content:
+            reasons.append(f"upstream {up} changed" if not content.startswith("recipe:")
+                           else f"upstream {up} is not computed with these parameters")
     if old.get("inputs") != fps[stage].get("inputs"):
         reasons.append("input files changed")
     if store.is_complete(stage, expected):
@@ -559,9 +654,18 @@ def status(scene_name, overrides=(), profile=None, preset=None, artifacts=DEFAUL
     stages = load_stages()
     scene = resolve_scene(scene_name, data_root)
     resolved = resolve_params(stages, params_path, overrides, profile, preset)
-    fps = compute_fingerprints(stages, resolved, scene)
     store = Store(artifacts, scene.name, preset)
+    fps = compute_fingerprints(stages, resolved, scene, store)
     return {name: explain(name, fps, store) for name in stages}
+
+
+def verify(scene_name: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=None) -> dict[str, list[str]]:
+    """Re-hash every file of each stage's current version against its manifest: stage -> problems
+    ([] = intact). Stages with no current version are left out."""
+    scene = resolve_scene(scene_name, data_root)
+    store = Store(artifacts, scene.name, preset)
+    return {name: store.damage(name, fp, deep=True) for name in load_stages()
+            if (fp := store.current(name)) is not None}
 
 
 def describe_artifact(path: Path) -> list[str]:
@@ -619,10 +723,20 @@ def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None) -> li
         with store.lock():
             # only stage folders: others (e.g. the report) are not versioned
             stage_names = set(load_stages())
-            for stage_dir in sorted(p for p in scene_dir.iterdir() if p.is_dir() and p.name in stage_names):
-                keep = {os.readlink(p) for p in stage_dir.iterdir() if p.is_symlink()}
+            stage_dirs = sorted(p for p in scene_dir.iterdir() if p.is_dir() and p.name in stage_names)
+            # what the pointers name, and the upstream versions those were computed from: a version
+            # reused through the content digest may name an upstream version no pointer names
+            todo = [(d.name, os.readlink(p)) for d in stage_dirs for p in d.iterdir() if p.is_symlink()]
+            keep: set[tuple[str, str]] = set()
+            while todo:
+                stage, fp = todo.pop()
+                if (stage, fp) in keep or not store.is_complete(stage, fp):
+                    continue
+                keep.add((stage, fp))
+                todo.extend(store.manifest(stage, fp).get("upstream", {}).items())
+            for stage_dir in stage_dirs:
                 for version in stage_dir.iterdir():
-                    if version.is_symlink() or version.name in keep or version.name.startswith(".ckpt-"):
+                    if version.is_symlink() or (stage_dir.name, version.name) in keep or version.name.startswith(".ckpt-"):
                         continue
                     shutil.rmtree(version, ignore_errors=True)
                     removed.append(version)
@@ -661,6 +775,9 @@ def _parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("params-diff", help="what changed since a stage's current version")
     common(sp)
     sp.add_argument("stage")
+    sp = sub.add_parser("verify", help="re-hash the current versions' files against their manifests")
+    common(sp, params=False)
+    sp.add_argument("--preset", default=None)
     sp = sub.add_parser("gc", help="delete artifact versions no longer current")
     sp.add_argument("--scene", default=None)
     sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS)
@@ -688,6 +805,16 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.stage}: {state}")
             for r in reasons:
                 print(f"  {r}")
+        elif args.command == "verify":
+            results = verify(args.scene, args.artifacts, args.data_root, args.preset)
+            for name, problems in results.items():
+                print(f"{name:<18} {'ok' if not problems else 'DAMAGED'}")
+                for problem in problems:
+                    print(f"    {problem}")
+            damaged = [n for n, p in results.items() if p]
+            if damaged:
+                print(f"rebuild: python pipeline.py run --scene {args.scene} --force {' --force '.join(damaged)}")
+                return 1
         elif args.command == "gc":
             removed = gc(args.artifacts, args.scene)
             print(f"removed {len(removed)} old version(s)")

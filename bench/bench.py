@@ -77,11 +77,13 @@ class Run:
     rows: dict[str, dict]    # stage -> manifest summary (see `collect`) + computed_this_sitting
 
 
-def plan(scene: str, overrides: list[str], preset: str | None) -> tuple[dict, dict[str, str]]:
-    """The resolved parameters and the stage -> fingerprint that `pipeline.run` will use."""
+def plan(scene: str, overrides: list[str], preset: str | None, artifacts: Path) -> tuple[dict, dict[str, str]]:
+    """The resolved parameters and the stage -> fingerprint that `pipeline.run` will use (for the
+    stages whose upstream versions exist already: the others' depend on what their upstream writes)."""
     stages = pipeline.load_stages()
     resolved = pipeline.resolve_params(stages, overrides=overrides, preset=preset)
-    fps = pipeline.compute_fingerprints(stages, resolved, pipeline.resolve_scene(scene))
+    scene_ref = pipeline.resolve_scene(scene)
+    fps = pipeline.compute_fingerprints(stages, resolved, scene_ref, pipeline.Store(artifacts, scene_ref.name, preset))
     return resolved, {name: f["fingerprint"] for name, f in fps.items()}
 
 
@@ -118,11 +120,12 @@ def run_systems(scene: str, systems: list[System], overrides: list[str], until: 
     computed: set[tuple[str, str]] = set()  # (stage, fingerprint) computed in this sitting
     runs = []
     for preset, last in last_stage_per_preset(systems, until).items():
-        params, fps = plan(scene, overrides, preset)
+        params, fps = plan(scene, overrides, preset, artifacts)
         report = pipeline.run(scene, until=last, overrides=overrides, preset=preset, artifacts=artifacts,
                               force=[s for s in force if (s, fps[s]) not in computed])
-        computed |= {(s, fps[s]) for s, how in report.items() if how == "computed"}
-        runs.append(Run(preset, params, report, collect(scene, artifacts, preset, stages=report)))
+        rows = collect(scene, artifacts, preset, stages=report)
+        computed |= {(s, rows[s]["fingerprint"]) for s, how in report.items() if how == "computed"}
+        runs.append(Run(preset, params, report, rows))
     for run in runs:  # a later preset reuses what an earlier one computed: still a time of this sitting
         for stage, row in run.rows.items():
             row["computed_this_sitting"] = (stage, row["fingerprint"]) in computed

@@ -185,9 +185,67 @@ def test_cli_status_show_params_diff_gc(capsys, artifacts):
     assert pipeline.main(["run", *args, *sets, "--set", "ingest.downscale=2", "--until", "ingest"]) == 0
     report = artifacts / "synthetic" / "report" / "figs"  # a non-stage folder gc must leave alone
     report.mkdir(parents=True)
+    # ground_truth's current version was computed from the first ingest: that one stays
     assert pipeline.main(["gc", "--artifacts", str(artifacts)]) == 0
-    assert "removed 1 old version" in capsys.readouterr().out
+    assert "removed 0 old version" in capsys.readouterr().out
+    assert pipeline.main(["run", *args, *sets, "--set", "ingest.downscale=2", "--until", "ground_truth"]) == 0
+    assert pipeline.main(["gc", "--artifacts", str(artifacts)]) == 0
+    assert "removed 2 old version" in capsys.readouterr().out
     assert report.is_dir()
+
+
+def test_a_damaged_version_is_named_and_never_read(capsys, artifacts):
+    pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+    store = pipeline.Store(artifacts, "synthetic")
+    version = store.version_dir("ingest", store.current("ingest"))
+    chunks = sorted((p for p in (version / "views.zarr").rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+    chunks[-1].unlink()  # the largest chunk (image data): zarr would read it back as zeros
+    state, reasons = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"]
+    assert state == "damaged" and f"{chunks[-1]}: missing" in reasons
+    with pytest.raises(pipeline.PipelineError, match=r"ingest version \w+ is damaged \(.*: missing\); rebuild it: "
+                                                     r"python pipeline.py run --scene synthetic --until ingest "
+                                                     r"--force ingest"):
+        pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+    with pytest.raises(pipeline.PipelineError, match="ingest version .* is damaged"):  # read as another's upstream
+        pipeline.run("synthetic", only="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+    args = ["--scene", "synthetic", "--artifacts", str(artifacts)]
+    assert pipeline.main(["verify", *args]) == 1
+    out = capsys.readouterr().out
+    assert "ingest             DAMAGED" in out and "ground_truth       ok" in out and "--force ingest" in out
+
+    sets = sum((["--set", s] for s in FAST_SYNTH), [])
+    assert pipeline.main(["run", *args, *sets, "--until", "ground_truth", "--force", "ingest"]) == 0
+    assert pipeline.main(["verify", *args]) == 0
+    # a corruption that keeps the size: only the hashes of `verify` see it
+    victim = chunks[0] if chunks[0].exists() else next(p for p in (version / "views.zarr").rglob("*") if p.is_file())
+    data = bytearray(victim.read_bytes())
+    data[0] ^= 0xFF
+    victim.write_bytes(bytes(data))
+    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
+    assert pipeline.main(["verify", *args]) == 1
+    assert "content differs from its hash" in capsys.readouterr().out
+
+
+def test_upstream_recomputed_to_the_same_bytes_leaves_downstream_fresh(artifacts, tmp_path, monkeypatch):
+    """Content cutoff: a comment-only edit of ingest recomputes ingest, and features, whose input
+    bytes did not change, is reused."""
+    copy = tmp_path / "src"
+    for folder in ("manifoldneus", "stages"):
+        shutil.copytree(pipeline.ROOT / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
+    monkeypatch.setattr(pipeline, "ROOT", copy)
+    pipeline.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
+    stage = copy / "stages" / "ingest.py"
+    stage.write_text(stage.read_text() + "\n# a comment-only edit\n")
+    st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert st["ingest"][0] == "stale"
+    assert st["features"] == ("stale", ["upstream ingest is not computed with these parameters"])
+    report = pipeline.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert report == {"ingest": "computed", "ground_truth": "computed", "features": "reused"}
+    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["features"] == ("fresh", [])
+    # different bytes do reach it
+    report = pipeline.run("synthetic", until="features", overrides=[*FAST_SYNTH, "ingest.synthetic_views=7"],
+                          artifacts=artifacts)
+    assert report == {"ingest": "computed", "ground_truth": "computed", "features": "computed"}
 
 
 def test_ground_truth_is_structurally_private(monkeypatch):
