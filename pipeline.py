@@ -116,6 +116,29 @@ def section_classes(stages: dict[str, Stage]) -> dict[str, type]:
     return classes
 
 
+def _expect_mapping(value, where: str) -> None:
+    if value is not None and not isinstance(value, dict):
+        raise ParamError(f"{where}: expected a mapping of key: value, got {type(value).__name__} {value!r}")
+
+
+def read_params_file(path: Path) -> dict:
+    """params.yaml as a mapping; a missing, empty, malformed or wrongly shaped file is a
+    ParamError that names the file (and the line, for YAML syntax)."""
+    if not path.is_file():
+        raise ParamError(f"parameter file {path} not found (the project's own is {DEFAULT_PARAMS})")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"{path}, line {mark.line + 1}" if mark is not None else str(path)
+        raise ParamError(f"{where}: not valid YAML ({getattr(e, 'problem', None) or e}); "
+                         "indent with spaces, not tabs") from None
+    if raw is None:
+        raise ParamError(f"{path} is empty: it needs at least the `profiles` section (see {DEFAULT_PARAMS})")
+    _expect_mapping(raw, f"{path}: the top level")
+    return dict(raw)
+
+
 def resolve_params(
     stages: dict[str, Stage],
     params_path: Path = DEFAULT_PARAMS,
@@ -127,8 +150,7 @@ def resolve_params(
 
     Order: dataclass defaults < params.yaml < profile < preset < ``--set`` overrides.
     """
-    raw = yaml.safe_load(Path(params_path).read_text()) if Path(params_path).exists() else {}
-    raw = raw or {}
+    raw = read_params_file(Path(params_path))
     classes = section_classes(stages)
     profiles = raw.pop("profiles", {}) or {}
     presets = raw.pop("presets", {}) or {}
@@ -137,15 +159,21 @@ def resolve_params(
     for section in raw:
         if section not in classes:
             raise ParamError(f"{params_path}: unknown section {section!r} (known: {', '.join(sorted(classes))})")
+    for section, values in raw.items():
+        _expect_mapping(values, f"{params_path}: section {section!r}")
+    if not profiles:
+        raise ParamError(f"{params_path} defines no `profiles` (the project's {DEFAULT_PARAMS} has fast and paper)")
     if profile not in profiles:
-        raise ParamError(f"unknown profile {profile!r} (params.yaml defines: {', '.join(sorted(profiles))})")
+        raise ParamError(f"unknown profile {profile!r} ({params_path} defines: {', '.join(sorted(profiles))})")
     if preset is not None and preset not in presets:
         raise ParamError(f"unknown preset {preset!r} (params.yaml defines: {', '.join(sorted(presets))})")
     merged = {s: dict(raw.get(s) or {}) for s in classes}
     for layer_name, layer in (("profile " + profile, profiles[profile]), ("preset " + str(preset), presets.get(preset))):
+        _expect_mapping(layer or {}, f"{params_path}: {layer_name}")
         for section, values in (layer or {}).items():
             if section not in classes:
                 raise ParamError(f"{layer_name}: unknown section {section!r}")
+            _expect_mapping(values, f"{params_path}: {layer_name}, section {section!r}")
             merged[section].update(values or {})
     for text in overrides:
         section, key, value = config.parse_override(text)
@@ -465,15 +493,27 @@ def _library_versions() -> dict:
     return out
 
 
-def _stage_logger(stage: str, path: Path) -> tuple[logging.Logger, logging.Handler]:
-    """The stage's logger; the file handler sits on the package logger, so messages of the
-    `manifoldneus.*` modules a stage calls (training progress, rollbacks) land in log.txt too."""
+def _stage_logger(stage: str, path: Path) -> tuple[logging.Logger, list[logging.Handler]]:
+    """The stage's logger; the handlers sit on the package logger, so messages of the
+    `manifoldneus.*` modules a stage calls (training progress, rollbacks) land in log.txt too,
+    and its warnings on the console as well."""
     package = logging.getLogger("manifoldneus")
     package.setLevel(logging.INFO)
-    handler = logging.FileHandler(path)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    package.addHandler(handler)
-    return logging.getLogger(f"manifoldneus.{stage}"), handler
+    to_file = logging.FileHandler(path)
+    to_file.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    to_console = logging.StreamHandler(sys.stderr)
+    # warnings only: a failure reaches the console once, as the CLI's one-line error
+    to_console.addFilter(lambda record: record.levelno == logging.WARNING)
+    to_console.setFormatter(logging.Formatter(f"[{stage}] warning: %(message)s"))
+    for h in (to_file, to_console):
+        package.addHandler(h)
+    return logging.getLogger(f"manifoldneus.{stage}"), [to_file, to_console]
+
+
+def _detach(handlers: list[logging.Handler]) -> None:
+    for h in handlers:
+        h.close()
+        logging.getLogger("manifoldneus").removeHandler(h)
 
 
 def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Path:
@@ -483,7 +523,7 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
     tmp = store.stage_dir(stage.name) / f".tmp-{fp}-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    log, handler = _stage_logger(stage.name, tmp / LOG)
+    log, handlers = _stage_logger(stage.name, tmp / LOG)
     ctx = Context(stage, resolved, store, fps[stage.name]["upstream"], tmp, scene, log, fp)
     log.info("stage %s, scene %s, fingerprint %s", stage.name, scene.name, fp)
     started = time.time()
@@ -517,16 +557,15 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
         manifest["content"] = content_digest(manifest["files"])
         log.info("done in %.1f s, peak %.0f MiB", manifest["wall_seconds"], manifest["peak_rss_mib"])
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
-    except BaseException:
+    except BaseException as e:
         log.exception("stage %s failed; nothing was published", stage.name)
-        handler.close()
-        logging.getLogger("manifoldneus").removeHandler(handler)
+        _detach(handlers)
         failed = store.stage_dir(stage.name) / f".failed-{fp}"
         shutil.rmtree(failed, ignore_errors=True)
         tmp.rename(failed)  # kept for its log.txt; never looks complete (no rename to the fingerprint)
+        e.stage_failed = (stage.name, failed / LOG)  # for the one-line error of the CLI
         raise
-    handler.close()
-    logging.getLogger("manifoldneus").removeHandler(handler)
+    _detach(handlers)
     if final.exists():  # an older incomplete or forced-over version
         shutil.rmtree(final)
     tmp.rename(final)
@@ -748,6 +787,7 @@ def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None) -> li
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pipeline.py", description=__doc__.split("\n")[0])
+    p.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(sp, params=True):
@@ -785,42 +825,70 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The CLI: every expected failure is one `error:` line and exit code 2 (130 for Ctrl-C);
+    ``--debug`` re-raises it with its traceback."""
     args = _parser().parse_args(argv)
     try:
-        if args.command == "run":
-            run(args.scene, args.until, args.only, args.overrides, args.force, args.profile, args.preset,
-                args.artifacts, args.params, args.data_root)
-        elif args.command == "status":
-            for name, (state, reasons) in status(args.scene, args.overrides, args.profile, args.preset,
-                                                 args.artifacts, args.params, args.data_root).items():
-                print(f"{name:<18} {state:<8} {'; '.join(reasons)}")
-        elif args.command == "show":
-            print(show(args.scene, args.stage, args.artifacts, args.data_root, args.preset))
-        elif args.command == "params-diff":
-            states = status(args.scene, args.overrides, args.profile, args.preset, args.artifacts, args.params,
-                            args.data_root)
-            if args.stage not in states:
-                raise PipelineError(f"unknown stage {args.stage!r} (stages: {', '.join(states)})")
-            state, reasons = states[args.stage]
-            print(f"{args.stage}: {state}")
-            for r in reasons:
-                print(f"  {r}")
-        elif args.command == "verify":
-            results = verify(args.scene, args.artifacts, args.data_root, args.preset)
-            for name, problems in results.items():
-                print(f"{name:<18} {'ok' if not problems else 'DAMAGED'}")
-                for problem in problems:
-                    print(f"    {problem}")
-            damaged = [n for n, p in results.items() if p]
-            if damaged:
-                print(f"rebuild: python pipeline.py run --scene {args.scene} --force {' --force '.join(damaged)}")
-                return 1
-        elif args.command == "gc":
-            removed = gc(args.artifacts, args.scene)
-            print(f"removed {len(removed)} old version(s)")
+        return _command(args)
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print("interrupted: nothing half-written was published; run the same command again to go on "
+              "(trainings resume from their checkpoints)", file=sys.stderr)
+        return 130
     except (PipelineError, ParamError, SceneError) as e:
+        if args.debug:
+            raise
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except PermissionError as e:
+        if args.debug:
+            raise
+        print(f"error: no permission to write {e.filename}: choose a writable artifacts folder with --artifacts DIR",
+              file=sys.stderr)
+        return 2
+    except Exception as e:  # noqa: BLE001 - a stage's failure: one line, the traceback is in its log
+        if args.debug:
+            raise
+        stage, log_path = getattr(e, "stage_failed", (None, None))
+        where = f"stage {stage} failed: " if stage else ""
+        hint = f" (traceback in {log_path}; --debug prints it here)" if log_path else " (--debug prints the traceback)"
+        print(f"error: {where}{type(e).__name__}: {e}{hint}", file=sys.stderr)
+        return 2
+
+
+def _command(args) -> int:
+    if args.command == "run":
+        run(args.scene, args.until, args.only, args.overrides, args.force, args.profile, args.preset,
+            args.artifacts, args.params, args.data_root)
+    elif args.command == "status":
+        for name, (state, reasons) in status(args.scene, args.overrides, args.profile, args.preset,
+                                             args.artifacts, args.params, args.data_root).items():
+            print(f"{name:<18} {state:<8} {'; '.join(reasons)}")
+    elif args.command == "show":
+        print(show(args.scene, args.stage, args.artifacts, args.data_root, args.preset))
+    elif args.command == "params-diff":
+        states = status(args.scene, args.overrides, args.profile, args.preset, args.artifacts, args.params,
+                        args.data_root)
+        if args.stage not in states:
+            raise PipelineError(f"unknown stage {args.stage!r} (stages: {', '.join(states)})")
+        state, reasons = states[args.stage]
+        print(f"{args.stage}: {state}")
+        for r in reasons:
+            print(f"  {r}")
+    elif args.command == "verify":
+        results = verify(args.scene, args.artifacts, args.data_root, args.preset)
+        for name, problems in results.items():
+            print(f"{name:<18} {'ok' if not problems else 'DAMAGED'}")
+            for problem in problems:
+                print(f"    {problem}")
+        damaged = [n for n, p in results.items() if p]
+        if damaged:
+            print(f"rebuild: python pipeline.py run --scene {args.scene} --force {' --force '.join(damaged)}")
+            return 1
+    elif args.command == "gc":
+        removed = gc(args.artifacts, args.scene)
+        print(f"removed {len(removed)} old version(s)")
     return 0
 
 

@@ -89,15 +89,27 @@ def save_png(path: Path, image: np.ndarray) -> None:
 
 
 def read_image(path: Path) -> np.ndarray:
-    """RGB uint8 [H,W,3]; raises a clear error naming an unreadable or corrupt file."""
+    """RGB uint8 [H,W,3] as stored, EXIF orientation not applied (as COLMAP reads it: the pixels
+    and the sensor's intrinsics, EXIF focal included, stay consistent). Raises a clear error
+    naming an unreadable, corrupt or truncated file."""
     import cv2
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image not found: {path}")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    corrupt = f"cannot decode image {path}: the file is unreadable, corrupt or truncated; replace or remove it"
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        # libjpeg decodes a truncated JPEG with a warning on stderr and grey rows; Pillow refuses it
+        from PIL import Image
+
+        try:
+            with Image.open(path) as im:
+                im.load()
+        except OSError:
+            raise ValueError(corrupt) from None
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if image is None:
-        raise ValueError(f"cannot decode image {path}: the file is unreadable or corrupt; replace or remove it")
+        raise ValueError(corrupt)
     return image[..., ::-1].copy()
 
 

@@ -51,6 +51,16 @@ def default_data_root() -> Path:
     return Path(os.environ.get("MANIFOLDNEUS_DATA", PROJECT_ROOT.parent / "shared" / "data"))
 
 
+def folder_scene_name(path: Path, root: Path) -> str:
+    """The cache key of a folder scene: its name when it lies directly in the data root (or its
+    ``dtu/``), one namespace; else ``<name>-<hash of the full path>``, so that two folders with one
+    basename (``/x/good8``, ``/y/good8``) never share artifacts."""
+    in_root = {(Path(root) / path.name).resolve(), (Path(root) / "dtu" / path.name).resolve()}
+    if path in in_root:
+        return path.name
+    return f"{path.name}-{hashlib.sha256(str(path).encode()).hexdigest()[:8]}"
+
+
 def resolve_scene(name: str, data_root: Path | None = None) -> SceneRef:
     """``synthetic[-seed]``, a folder path, or a name under the data root (``<root>/<name>``,
     ``<root>/dtu/<name>``)."""
@@ -62,7 +72,7 @@ def resolve_scene(name: str, data_root: Path | None = None) -> SceneRef:
     candidates = list(dict.fromkeys([Path(name), root / name, root / "dtu" / name]))
     for c in candidates:
         if c.is_dir():
-            return SceneRef(name=c.resolve().name, kind="folder", path=c.resolve())
+            return SceneRef(name=folder_scene_name(c.resolve(), root), kind="folder", path=c.resolve())
     if not root.is_dir():
         raise SceneError(f"data root {root} does not exist (scene {name!r}). {HOW_TO_GET_DTU}")
     raise SceneError(
@@ -103,7 +113,9 @@ def input_signature(ref: SceneRef) -> str:
 def _list_images(folder: Path) -> list[Path]:
     if not folder.is_dir():
         return []
-    return sorted(p for p in folder.iterdir() if p.suffix in IMAGE_EXTENSIONS and p.is_file())
+    # hidden files (macOS AppleDouble `._x.png`, `.DS_Store`) are not photos
+    return sorted(p for p in folder.iterdir()
+                  if p.suffix in IMAGE_EXTENSIONS and p.is_file() and not p.name.startswith("."))
 
 
 def _read_mask(path: Path) -> np.ndarray:

@@ -161,6 +161,10 @@ def run(ctx) -> None:
     n = len(names)
 
     W = build_W(n, arrays["pairs"], arrays["n_inliers"], p.min_inliers)
+    if not W.any():
+        raise RuntimeError(f"no pair of the {n} views has {p.min_inliers} or more verified matches: the photos do not "
+                           "overlap (or are identical, or featureless); take photos that see the object from nearby "
+                           "viewpoints, or lower covisibility.min_inliers")
     c = W.sum(1)
     n_comp, labels = components(W)
     comp_idx = [np.flatnonzero(labels == k).tolist() for k in range(n_comp)]

@@ -56,12 +56,18 @@ def contact_sheet(images: np.ndarray, masks: np.ndarray | None, columns: int = 1
     return sheet
 
 
+MIN_VIEWS = 3  # two views fix no more than their relative pose; the schedule needs anchors and successors
+
+
 def run(ctx) -> None:
     p: Params = ctx.params
     views = scenes.read_views(ctx.scene_ref, p)
     names = views.pop("names")
     layout = views.pop("layout")
     n, h, w = views["images"].shape[:3]
+    if n < MIN_VIEWS:
+        raise scenes.SceneError(f"{ctx.scene_ref.path or ctx.scene}: {n} view(s); pose-free reconstruction needs at "
+                                f"least {MIN_VIEWS} overlapping photos of the object")
     ctx.log.info("read %d views of %dx%d (%s layout): %s", n, w, h, layout,
                  ", ".join(k for k in ("masks", "mono_depth", "mono_normal") if k in views) or "no masks or priors")
     io.save_arrays(ctx.out / "views.zarr", views)

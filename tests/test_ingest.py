@@ -154,3 +154,70 @@ def test_missing_scene_lists_each_place_once(tmp_path):
         resolve_scene(str(missing), data_root=tmp_path)
     looked_in = str(e.value).split("looked in:")[1]
     assert looked_in.count(str(missing)) == 1
+
+
+def _jpeg(path, image, orientation=None):
+    from PIL import Image
+
+    exif = Image.Exif()
+    if orientation is not None:
+        exif[0x0112] = orientation
+    Image.fromarray(image).save(path, quality=95, exif=exif)
+
+
+def test_truncated_jpeg_is_an_error_naming_it(plain_folder, tiny_synthetic):
+    for f in plain_folder.iterdir():
+        f.unlink()
+    for i, im in enumerate(tiny_synthetic.images):
+        _jpeg(plain_folder / f"IMG_{i:04d}.jpg", im)
+    assert views_of(plain_folder)["images"].shape[0] == len(tiny_synthetic.images)
+    victim = plain_folder / "IMG_0003.jpg"
+    victim.write_bytes(victim.read_bytes()[: victim.stat().st_size * 3 // 4])  # libjpeg would fill grey rows
+    with pytest.raises(ValueError, match="IMG_0003.jpg: the file is unreadable, corrupt or truncated"):
+        views_of(plain_folder)
+
+
+def test_exif_orientation_leaves_pixels_and_principal_point_consistent(tmp_path):
+    """EXIF Orientation = 6 (rotate 90 on display): the pixels are read as stored, so K's
+    principal point (from the stored size) is the image centre, as COLMAP reads the file."""
+    yy, xx = np.mgrid[0:48, 0:96]
+    image = np.stack([xx * 2, yy * 4, 255 - xx * 2], -1).astype(np.uint8)  # landscape as stored, smooth
+    folder = tmp_path / "rotated"
+    folder.mkdir()
+    for i in range(3):
+        _jpeg(folder / f"p{i}.jpg", image, orientation=6)
+    v = views_of(folder)
+    assert v["images"].shape[1:3] == (48, 96)
+    np.testing.assert_allclose(v["K"][:, 0, 2], 48.0)
+    np.testing.assert_allclose(v["K"][:, 1, 2], 24.0)
+    assert np.abs(v["images"][0].astype(int) - image.astype(int)).mean() < 8  # JPEG loss only, not a rotation
+
+
+def test_hidden_files_are_not_photos(plain_folder):
+    (plain_folder / "._IMG_0001.png").write_bytes(b"\x00\x05\x16\x07AppleDouble")  # macOS resource fork
+    (plain_folder / ".DS_Store").write_bytes(b"\x00")
+    v = views_of(plain_folder)
+    assert len(v["names"]) == 6 and not any(n.startswith(".") for n in v["names"])
+
+
+def test_folders_with_one_basename_do_not_share_a_cache(tmp_path, tiny_synthetic):
+    names = []
+    for parent in ("x", "y"):
+        folder = tmp_path / parent / "good8"
+        folder.mkdir(parents=True)
+        io.save_png(folder / "a.png", tiny_synthetic.images[0])
+        names.append(resolve_scene(str(folder)).name)
+    assert names[0] != names[1] and all(n.startswith("good8-") for n in names)
+    assert resolve_scene(str(tmp_path / "x" / "good8")).name == names[0]  # stable
+    # a scene in the data root keeps its plain name, however it is named
+    assert resolve_scene("good8", data_root=tmp_path / "x").name == "good8"
+    assert resolve_scene(str(tmp_path / "x" / "good8"), data_root=tmp_path / "x").name == "good8"
+
+
+def test_too_few_views_stop_at_ingest(tmp_path, tiny_synthetic, artifacts):
+    folder = tmp_path / "two"
+    folder.mkdir()
+    for i in range(2):
+        io.save_png(folder / f"v{i}.png", tiny_synthetic.images[i])
+    with pytest.raises(SceneError, match="2 view\\(s\\); pose-free reconstruction needs at least 3"):
+        pipeline.run(str(folder), until="ingest", artifacts=artifacts)

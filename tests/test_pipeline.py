@@ -314,3 +314,59 @@ def test_the_package_never_imports_the_stages():
     for path in sorted((pipeline.ROOT / "manifoldneus").glob("*.py")):
         names = pipeline._imported_names(path, f"manifoldneus.{path.stem}")
         assert not [n for n in names if n == "stages" or n.startswith("stages.")], path.name
+
+
+@pytest.mark.parametrize("text, message", [
+    ("run:\n\tseed: 1\n", r"params.yaml, line 2: not valid YAML .*indent with spaces, not tabs"),
+    ("run: [1, 2\n", r"params.yaml, line \d: not valid YAML"),
+    ("- a\n- b\n", r"params.yaml: the top level: expected a mapping"),
+    ("gate: 5\n", r"params.yaml: section 'gate': expected a mapping"),
+    ("", r"params.yaml is empty"),
+])
+def test_a_bad_params_file_is_named_with_its_line(tmp_path, artifacts, capsys, text, message):
+    bad = tmp_path / "params.yaml"
+    bad.write_text(text)
+    assert pipeline.main(["run", "--scene", "synthetic", "--params", str(bad), "--artifacts", str(artifacts)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ")
+    import re
+    assert re.search(message, err), err
+
+
+def test_a_missing_params_file_says_so(tmp_path, artifacts, capsys):
+    assert pipeline.main(["status", "--scene", "synthetic", "--params", str(tmp_path / "nope.yaml")]) == 2
+    assert f"parameter file {tmp_path / 'nope.yaml'} not found" in capsys.readouterr().err
+
+
+def test_every_expected_failure_is_one_line(artifacts, capsys, monkeypatch):
+    import stages.ingest as ingest
+
+    args = ["run", "--scene", "synthetic", "--until", "ingest", "--artifacts", str(artifacts)]
+
+    def fails(ctx):
+        ctx.log.warning("a warning the user must see")
+        raise ValueError("all views are black")
+
+    monkeypatch.setattr(ingest, "run", fails)
+    assert pipeline.main(args) == 2
+    err = capsys.readouterr().err
+    assert "[ingest] warning: a warning the user must see" in err  # a stage's warning reaches the console
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("error: stage ingest failed: ValueError: all views are black (traceback in ")
+    assert "Traceback" not in err and last.split("traceback in ")[1].split(";")[0].endswith("log.txt")
+    with pytest.raises(ValueError):
+        pipeline.main(["--debug", *args])
+
+    def interrupted(ctx):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ingest, "run", interrupted)
+    assert pipeline.main(args) == 130
+    assert "interrupted: nothing half-written was published" in capsys.readouterr().err
+
+    def read_only(self):
+        raise PermissionError(13, "Permission denied", str(artifacts / "synthetic" / ".lock"))
+
+    monkeypatch.setattr(pipeline.Store, "lock", read_only)
+    assert pipeline.main(args) == 2
+    assert "error: no permission to write" in capsys.readouterr().err
