@@ -698,13 +698,23 @@ def status(scene_name, overrides=(), profile=None, preset=None, artifacts=DEFAUL
     return {name: explain(name, fps, store) for name in stages}
 
 
-def verify(scene_name: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=None) -> dict[str, list[str]]:
-    """Re-hash every file of each stage's current version against its manifest: stage -> problems
-    ([] = intact). Stages with no current version are left out."""
+def verify(scene_name: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=None) -> dict[str, tuple[str, list]]:
+    """Re-hash every file of each stage's current version against its manifest: stage -> (state,
+    problems), state ok | DAMAGED | unverified (a manifest written before file hashes were
+    recorded). Stages with no current version are left out."""
     scene = resolve_scene(scene_name, data_root)
     store = Store(artifacts, scene.name, preset)
-    return {name: store.damage(name, fp, deep=True) for name in load_stages()
-            if (fp := store.current(name)) is not None}
+    out = {}
+    for name in load_stages():
+        fp = store.current(name)
+        if fp is None:
+            continue
+        if "files" not in store.manifest(name, fp):
+            out[name] = ("unverified", ["its manifest predates file hashes; `run --force` it to record them"])
+            continue
+        problems = store.damage(name, fp, deep=True)
+        out[name] = ("DAMAGED" if problems else "ok", problems)
+    return out
 
 
 def describe_artifact(path: Path) -> list[str]:
@@ -878,11 +888,11 @@ def _command(args) -> int:
             print(f"  {r}")
     elif args.command == "verify":
         results = verify(args.scene, args.artifacts, args.data_root, args.preset)
-        for name, problems in results.items():
-            print(f"{name:<18} {'ok' if not problems else 'DAMAGED'}")
+        for name, (state, problems) in results.items():
+            print(f"{name:<18} {state}")
             for problem in problems:
                 print(f"    {problem}")
-        damaged = [n for n, p in results.items() if p]
+        damaged = [n for n, (state, _) in results.items() if state == "DAMAGED"]
         if damaged:
             print(f"rebuild: python pipeline.py run --scene {args.scene} --force {' --force '.join(damaged)}")
             return 1

@@ -83,14 +83,14 @@ def resolve_scene(name: str, data_root: Path | None = None) -> SceneRef:
 def detect_layout(path: Path) -> str:
     if (path / "cameras.npz").is_file() and any(path.glob("*_rgb.png")):
         return "monosdf"
-    if (path / "cameras_sphere.npz").is_file() and (path / "image").is_dir():
+    if (path / "cameras_sphere.npz").is_file() and _idr_image_dir(path).is_dir():
         return "idr"
     if _colmap_model_dir(path) is not None:
         return "colmap"
     if _list_images(path):
         return "images"
     raise SceneError(
-        f"{path}: no known layout (MonoSDF: *_rgb.png + cameras.npz; IDR: image/ + cameras_sphere.npz; "
+        f"{path}: no known layout (MonoSDF: *_rgb.png + cameras.npz; IDR/NeuS: image/ (or images/) + cameras_sphere.npz; "
         f"COLMAP: sparse/0/ + images/; or a folder of images)"
     )
 
@@ -108,6 +108,11 @@ def input_signature(ref: SceneRef) -> str:
 
 
 # ---------------------------------------------------------------------------- helpers
+
+
+def _idr_image_dir(path: Path) -> Path:
+    """IDR's `image/`, or `images/` as some NeuS releases name it."""
+    return path / "image" if (path / "image").is_dir() or not (path / "images").is_dir() else path / "images"
 
 
 def _list_images(folder: Path) -> list[Path]:
@@ -249,10 +254,10 @@ def _monosdf_views(path: Path, p) -> dict:
 
 
 def _idr_views(path: Path, p) -> dict:
-    files = _list_images(path / "image")
+    files = _list_images(_idr_image_dir(path))
     n = len(files)
     if n == 0:
-        raise SceneError(f"{path / 'image'}: no images")
+        raise SceneError(f"{_idr_image_dir(path)}: no images")
     cams = _load_npz(path / "cameras_sphere.npz", [f"world_mat_{i}" for i in range(n)])
     views = {
         "images": np.stack([io.read_image(f) for f in files]),
@@ -358,7 +363,7 @@ def _ground_truth_all_views(ref: SceneRef, p) -> dict | None:
                 "surface_points": synthetic.sample_surface(p.synthetic_surface_points, seed=ref.seed)}
     layout = detect_layout(ref.path) if p.layout == "auto" else p.layout
     if layout in ("monosdf", "idr"):
-        n = len(sorted(ref.path.glob("*_rgb.png"))) if layout == "monosdf" else len(_list_images(ref.path / "image"))
+        n = len(sorted(ref.path.glob("*_rgb.png"))) if layout == "monosdf" else len(_list_images(_idr_image_dir(ref.path)))
         name = "cameras.npz" if layout == "monosdf" else "cameras_sphere.npz"
         keys = [f"{k}_{i}" for i in range(n) for k in ("world_mat", "scale_mat")]
         cams = _load_npz(ref.path / name, keys)

@@ -221,3 +221,12 @@ def test_too_few_views_stop_at_ingest(tmp_path, tiny_synthetic, artifacts):
         io.save_png(folder / f"v{i}.png", tiny_synthetic.images[i])
     with pytest.raises(SceneError, match="2 view\\(s\\); pose-free reconstruction needs at least 3"):
         pipeline.run(str(folder), until="ingest", artifacts=artifacts)
+
+
+def test_neus_layout_with_an_images_folder(idr_folder, tiny_synthetic):
+    before = views_of(idr_folder)
+    (idr_folder / "image").rename(idr_folder / "images")  # NeuS's own data uses both names
+    after = views_of(idr_folder)
+    assert after["layout"] == "idr" and np.array_equal(after["images"], before["images"])
+    np.testing.assert_allclose(after["K"], before["K"])
+    assert len(gt_of(idr_folder)["w2c"]) == len(tiny_synthetic.images)
