@@ -230,3 +230,15 @@ def test_neus_layout_with_an_images_folder(idr_folder, tiny_synthetic):
     assert after["layout"] == "idr" and np.array_equal(after["images"], before["images"])
     np.testing.assert_allclose(after["K"], before["K"])
     assert len(gt_of(idr_folder)["w2c"]) == len(tiny_synthetic.images)
+
+
+def test_identical_photos_stop_at_covisibility(tmp_path, artifacts):
+    from manifoldneus import synthetic
+
+    image = synthetic.make_scene(seed=1, n_views=6, resolution=96).images[0]
+    folder = tmp_path / "same"
+    folder.mkdir()
+    for i in range(8):
+        io.save_png(folder / f"v{i}.png", image)
+    with pytest.raises(RuntimeError, match="no pair of the 8 views has 15 or more verified matches"):
+        pipeline.run(str(folder), until="anchors", artifacts=artifacts)
