@@ -135,9 +135,7 @@ class Round:
         return self.trainer.extra_state["grad_trace"]
 
     def _record(self, trainer: Trainer, info: dict) -> None:
-        g = trainer.xi.grad
-        norms = np.zeros(len(self.ids)) if g is None else g.detach().norm(dim=-1).cpu().numpy()
-        self.grad_trace.append(norms)
+        self.grad_trace.append(trainer.cams.grad_norms())
         self.pose_trace.append(trainer.poses_numpy())
 
     def _guard(self, ctx, desc: str) -> dict:
@@ -148,8 +146,7 @@ class Round:
             return {"checked": False, "why": "poses not learned"}
         out = correspondence.guard_check(self.corr, t.w2c_init, t.poses().detach(), self.corr_p)
         if out["fired"]:
-            with torch.no_grad():
-                t.xi.zero_()
+            t.cams.reset()
             ctx.log.warning("%s: the pose update raised the held-out %s error from %.4g to %.4g (tolerance %g %%): "
                             "poses rolled back to the round's start", desc, self.corr_p.kind, out["start"], out["end"],
                             100 * self.corr_p.guard_tolerance)

@@ -10,9 +10,8 @@ Hooks for the pose-free method:
 * ``band_weight_fn(view_ids [R] long, step) -> [R, L]``: per-ray gate of the field's bands/levels
   (the MaVOS-gated BARF schedule); without it a global BARF ramp over ``c2f_iters`` applies
   (0 = all bands on from the start).
-* ``learn_poses``: poses are ``w2c = apply_correction(xi[view], w2c_init[view])`` with ``xi``
-  [N,6] learned by AdamW for ``pose_views`` (default: all training views), from step
-  ``pose_start`` on (frozen before it, exactly, not rounded to the logging interval).
+* ``learn_poses``: the views ``pose_views`` (default: all training views) learn se(3) corrections
+  from step ``pose_start`` on (:class:`manifoldneus.pose_correction.PoseCorrections`, ``self.cams``).
 * ``pose_loss(w2c [N,3,4], rng, step) -> scalar | None`` with a ``weight`` attribute: a term on the poses
   alone (the verified matches' tracks or epipolar errors, :mod:`manifoldneus.correspondence`),
   added to the loss while poses are learned.
@@ -34,10 +33,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from manifoldneus.cameras import apply_correction, rotation_angle_deg
 from manifoldneus.config import param
 from manifoldneus.field import FieldParams, make_field
 from manifoldneus.gate import barf_weights
+from manifoldneus.pose_correction import PoseCorrections
 from manifoldneus.losses import LossParams, compute_losses
 from manifoldneus.rays import camera_rays, project
 from manifoldneus.render import Background, RenderParams, SDFCache, render_image, render_rays, resolve_background
@@ -206,7 +205,6 @@ class Trainer:
         self.views = views.resized(self.tp.image_size)
         self.train_views = np.arange(self.views.n) if train_views is None else np.asarray(train_views, int)
         self.band_weight_fn = band_weight_fn
-        self.pose_start = int(pose_start)
         self.pose_loss = pose_loss
         self.progress = progress
         self.checkpoint_path = checkpoint_path
@@ -228,12 +226,9 @@ class Trainer:
         self.bg_kind = resolve_background(self.rp.background, self.masks is not None)
         self.background = Background(self.bg_kind).to(dev)
         self.cache = SDFCache(self.rp.cache_res, self.rp.radius, device=dev) if self.rp.sampler == "cache" else None
-        # pose corrections
-        self.xi = torch.nn.Parameter(torch.zeros(v.n, 6, device=dev))
-        pv = self.train_views if pose_views is None else np.asarray(pose_views, int)
-        self.pose_mask = torch.zeros(v.n, 1, device=dev)
-        if self.tp.learn_poses:
-            self.pose_mask[torch.as_tensor(pv, dtype=torch.long)] = 1.0
+        self.cams = PoseCorrections(
+            self.w2c_init, (self.train_views if pose_views is None else pose_views) if self.tp.learn_poses else None,
+            start=pose_start, lr=self.tp.pose_lr, weight_decay=self.tp.pose_weight_decay)
         self._build_optimizers()
         self.step = 0
         self.lr_scale = 1.0
@@ -270,18 +265,11 @@ class Trainer:
         fused = self.device.type in ("cpu", "cuda")
         self.opt = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15 if grid_params else 1e-8,
                                     fused=fused)
-        self.pose_opt = None
-        if self.tp.learn_poses:
-            self.pose_opt = torch.optim.AdamW([{"params": [self.xi], "lr": self.tp.pose_lr, "base_lr": self.tp.pose_lr}],
-                                              weight_decay=self.tp.pose_weight_decay)
 
     # ------------------------------------------------------------------ poses
     def poses(self) -> torch.Tensor:
         """Current world-to-camera poses [N,3,4] (corrected when poses are learned)."""
-        if not self.tp.learn_poses:
-            return self.w2c_init
-        mask = self.pose_mask if self.step >= self.pose_start else torch.zeros_like(self.pose_mask)
-        return apply_correction(self.xi * mask, self.w2c_init)
+        return self.cams.poses(self.step)
 
     def poses_numpy(self) -> np.ndarray:
         with torch.no_grad():
@@ -331,8 +319,7 @@ class Trainer:
             "field": self.field.state_dict(),
             "background": self.background.state_dict(),
             "opt": self.opt.state_dict(),
-            "xi": self.xi.detach().clone(),
-            "pose_opt": None if self.pose_opt is None else self.pose_opt.state_dict(),
+            "cams": self.cams.state_dict(),
             "lr_scale": self.lr_scale,
             "rollbacks": self.rollbacks,
             "cache": None if self.cache is None else self.cache.state_dict(),
@@ -353,10 +340,7 @@ class Trainer:
         self.field.load_state_dict(s["field"])
         self.background.load_state_dict(s["background"])
         self.opt.load_state_dict(s["opt"])
-        with torch.no_grad():
-            self.xi.copy_(s["xi"])
-        if self.pose_opt is not None and s.get("pose_opt") is not None:
-            self.pose_opt.load_state_dict(s["pose_opt"])
+        self.cams.load_state_dict(s["cams"])
         self.lr_scale = float(s["lr_scale"])
         self.rollbacks = int(s.get("rollbacks", 0))
         if self.cache is not None and s.get("cache") is not None:
@@ -439,10 +423,7 @@ class Trainer:
         f = lr_factor(st, self.tp.iters, self.tp.warmup, self.tp.lr_min_ratio) * self.lr_scale
         for g in self.opt.param_groups:
             g["lr"] = g["base_lr"] * f
-        if self.pose_opt is not None:
-            fp = lr_factor(st, self.tp.iters, self.tp.pose_warmup, self.tp.pose_lr_min_ratio) * self.lr_scale
-            for g in self.pose_opt.param_groups:
-                g["lr"] = g["base_lr"] * fp
+        self.cams.set_lr(lr_factor(st, self.tp.iters, self.tp.pose_warmup, self.tp.pose_lr_min_ratio) * self.lr_scale)
 
     def update_cache(self) -> None:
         if self.cache is not None:
@@ -464,7 +445,7 @@ class Trainer:
                           band_weights=bw, perturb=True, train=True, want_normals=True)
         total, terms, status = compute_losses(out, b, self.lp)
         field_loss = float(total.detach())  # what the divergence check watches (the pose term jumps by design)
-        if self.pose_loss is not None and self.pose_opt is not None and self.step >= self.pose_start:
+        if self.pose_loss is not None and self.cams.active(self.step):
             extra = self.pose_loss(self.poses(), self.rng, self.step)
             if extra is not None:
                 terms["corr"] = float(extra.detach())
@@ -484,8 +465,7 @@ class Trainer:
             return {"rollback": True}
         self._loss_ema = field_loss if self._loss_ema is None else 0.98 * self._loss_ema + 0.02 * field_loss
         self.opt.zero_grad(set_to_none=True)
-        if self.pose_opt is not None:
-            self.pose_opt.zero_grad(set_to_none=True)
+        self.cams.zero_grad()
         total.backward()
         # one reduction per tensor: a NaN / inf anywhere makes its sum non-finite
         grads = [p.grad for p in self.field.parameters() if p.grad is not None]
@@ -495,8 +475,7 @@ class Trainer:
             self._rollback(f"non-finite gradient in {bad}")
             return {"rollback": True}
         self.opt.step()
-        if self.pose_opt is not None:
-            self.pose_opt.step()
+        self.cams.step()
         self.step += 1
         info = None
         if self.step % self.tp.log_every == 0 or self.step == self._target:
@@ -517,22 +496,12 @@ class Trainer:
 
     def pose_jump(self) -> str | None:
         """Why the learned poses count as diverged since the last rollback state, or None."""
-        if self.pose_opt is None or self._good_state is None:
+        if self._good_state is None:
             return None
-        with torch.no_grad():
-            if not bool(torch.isfinite(self.xi).all()):
-                return "non-finite pose correction"
-            if self.tp.pose_jump_deg <= 0:
-                return None
-            now = self.poses()[:, :3, :3]  # [N,3,3]
-            before = apply_correction(self._good_state["xi"] * self.pose_mask, self.w2c_init)[:, :3, :3]
-            turn = rotation_angle_deg((now @ before.transpose(-1, -2)).double().cpu().numpy())  # [N]
-        worst = int(turn.argmax())
-        if turn[worst] > self.tp.pose_jump_deg:
-            name = self.views.names[worst] if worst < len(self.views.names) else str(worst)
-            return (f"pose of view {name} turned {turn[worst]:.1f} deg in {self.tp.ckpt_every} iterations "
-                    f"(pose_jump_deg = {self.tp.pose_jump_deg:g})")
-        return None
+        why = self.cams.jump(self._good_state["cams"]["xi"], self.step, self.tp.pose_jump_deg, self.views.names)
+        if why is None or why.startswith("non-finite"):
+            return why
+        return f"{why} in {self.tp.ckpt_every} iterations (pose_jump_deg = {self.tp.pose_jump_deg:g})"
 
     def train(self, iters: int | None = None, time_budget_s: float | None = None, callback=None) -> dict:
         """Train until ``iters`` (default ``train_p.iters``) total iterations or the time budget.

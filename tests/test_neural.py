@@ -241,18 +241,18 @@ def test_pose_jump_rolls_back_to_the_last_good_state():
     tr = Trainer(views, fp, rp, LossParams(), tp)
     for _ in range(12):
         tr.train_step()
-    good_xi = tr._good_state["xi"].clone()  # the state of step 10
+    good_xi = tr._good_state["cams"]["xi"].clone()  # the state of step 10
     with torch.no_grad():
-        tr.xi[2, 3:] += np.radians(25.0) / np.sqrt(3)  # view 2 turns by 25 deg
+        tr.cams.xi[2, 3:] += np.radians(25.0) / np.sqrt(3)  # view 2 turns by 25 deg
     results = [tr.train_step() for _ in range(8)]  # reaches step 20: the check
     assert results[-1].get("rollback") and tr.step == 10 and tr.rollbacks == 1
     assert "view 2 turned" in tr.events[-1]["reason"] and tr.lr_scale == pytest.approx(0.5)
-    assert torch.equal(tr.xi.detach(), good_xi)
+    assert torch.equal(tr.cams.xi.detach(), good_xi)
     # a small, honest pose update is no jump
     tr.train(iters=30)
     assert tr.step == 30 and tr.rollbacks == 1
     with torch.no_grad():
-        tr.xi[1, 0] = float("nan")
+        tr.cams.xi[1, 0] = float("nan")
     assert tr.pose_jump() == "non-finite pose correction"
 
 
@@ -300,7 +300,7 @@ def test_band_weights_interface():
 
 
 def _fingerprint(tr: Trainer) -> list[torch.Tensor]:
-    return [p.detach().clone() for p in tr.field.parameters()] + [tr.xi.detach().clone()]
+    return [p.detach().clone() for p in tr.field.parameters()] + [tr.cams.xi.detach().clone()]
 
 
 def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
@@ -360,3 +360,27 @@ def test_truncated_checkpoint_is_discarded_not_fatal(tmp_path, caplog):
     assert not again.resume(ck) and again.step == 0 and not ck.exists()
     assert "unreadable" in caplog.text
     assert not again.resume(tmp_path / "absent.pt")
+
+
+def test_pose_corrections_own_which_views_learn_and_from_when():
+    from manifoldneus.pose_correction import PoseCorrections
+
+    w2c = torch.as_tensor(np.stack([look_at_w2c(np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 1.0]), np.zeros(3),
+                                                np.array([0.0, 0.0, 1.0]))[:3] for a in np.linspace(0, 6, 5)]),
+                          dtype=torch.float32)
+    cams = PoseCorrections(w2c, trainable=[1, 3], start=5, lr=0.1)
+    assert cams.learning and not cams.active(4) and cams.active(5)
+    for _ in range(3):
+        cams.zero_grad()
+        cams.poses(10)[:, :, 3].sum().backward()
+        cams.step()
+    moved = (cams.poses(10) - w2c).abs().amax(dim=(1, 2)) > 1e-4
+    assert moved.tolist() == [False, True, False, True, False]
+    assert torch.equal(cams.poses(4), w2c)  # frozen before `start`, whatever was learned
+    assert np.count_nonzero(cams.grad_norms()) == 2
+    other = PoseCorrections(w2c, trainable=[1, 3], start=5, lr=0.1)
+    other.load_state_dict(cams.state_dict())
+    assert torch.equal(other.poses(10), cams.poses(10))
+    cams.reset()
+    assert torch.equal(cams.poses(10), w2c)
+    assert not PoseCorrections(w2c).learning and PoseCorrections(w2c).poses(10) is w2c
