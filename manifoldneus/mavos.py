@@ -279,12 +279,15 @@ def _validate(strategy, alpha, anchor_percent, successors_per_round, coverage):
         raise ValueError(f"strategy: {strategy!r} is not one of {STRATEGIES}")
     if coverage not in COVERAGES:
         raise ValueError(f"coverage: {coverage!r} is not one of {COVERAGES}")
-    try:
-        alpha = float(alpha)
-    except (TypeError, ValueError):
-        raise ValueError(f"alpha: expected a number in [0, 1], got {alpha!r}") from None
-    if not (0.0 <= alpha <= 1.0):
-        raise ValueError(f"alpha: {alpha} is outside [0, 1]")
+    if alpha is None and strategy == "mavos":  # its value lives in the `schedule` section, not here
+        raise ValueError("alpha: the mavos strategy needs alpha (S = alpha L + (1 - alpha) C)")
+    if alpha is not None:
+        try:
+            alpha = float(alpha)
+        except (TypeError, ValueError):
+            raise ValueError(f"alpha: expected a number in [0, 1], got {alpha!r}") from None
+        if not (0.0 <= alpha <= 1.0):
+            raise ValueError(f"alpha: {alpha} is outside [0, 1]")
     try:
         K = float(anchor_percent)
     except (TypeError, ValueError):
@@ -310,7 +313,7 @@ def mavos_schedule(
     c: np.ndarray | None = None,
     *,
     strategy: str = "mavos",
-    alpha: float = 0.65,
+    alpha: float | None = None,
     anchor_percent: float = 30.0,
     successors_per_round: int = 20,
     coverage: str = "SE",
@@ -395,7 +398,9 @@ def mavos_schedule(
                 else:
                     Lc, Cc = normalise(Lraw), normalise(Craw)
                     ranges = ((Lraw.min(), Lraw.max()), (Craw.min(), Craw.max()))
-            Sc = Cc if strategy == "fps" else alpha * Lc + (1.0 - alpha) * Cc
+            # uniform: one round, the pick order only lists the views (by coverage, as fps), so that
+            # nothing it writes depends on alpha, K or M (which it does not use)
+            Sc = Cc if strategy in ("fps", "uniform") else alpha * Lc + (1.0 - alpha) * Cc
             # first maximum: lowest view index (cand is sorted); the first pick is argmax c
             k = int(np.argmax(Lc if not picks else Sc))
             v = int(cand[k])
@@ -427,9 +432,9 @@ def mavos_schedule(
 
     settings = {
         "strategy": strategy,
-        "alpha": alpha if strategy != "fps" else None,
-        "anchor_percent": K,
-        "successors_per_round": M,
+        "alpha": alpha if strategy == "mavos" else None,
+        "anchor_percent": K if strategy != "uniform" else None,
+        "successors_per_round": M if strategy != "uniform" else None,
         "coverage": coverage,
         "s_tilde_from": s_tilde_from if strategy != "uniform" else "constant 1 (uniform)",
         "round_sizes": sizes,

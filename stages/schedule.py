@@ -198,7 +198,8 @@ def run(ctx) -> None:
     plot_schedule(sched, phi, W, ctx.out / "schedule.png",
                   title=f"{ctx.scene}: {p.strategy}-{p.coverage}"
                         + (f", alpha = {p.alpha}" if p.strategy == "mavos" else "")
-                        + f", K = {p.anchor_percent:g}%, M = {p.successors_per_round}; anchors "
+                        + (f", K = {p.anchor_percent:g}%, M = {p.successors_per_round}" if p.strategy != "uniform" else "")
+                        + "; anchors "
                         + ("form one connected cluster" if connected else f"form {n_clusters} clusters")
                         + (f" (weakest spanning link {bottleneck:g} matches)" if bottleneck else ""))
     ctx.metrics.update(n_anchors=len(anchors), anchors_connected=bool(connected), anchor_clusters=n_clusters,

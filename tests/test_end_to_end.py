@@ -82,6 +82,11 @@ def test_neus_barf_preset_reuses_the_front_end(tiny_run):
     assert [r["label"] for r in ev["poses"]] == ["initial", "anchors"]
     # the default run's pointers did not move
     assert pipeline.status("synthetic", overrides=TINY, artifacts=artifacts)["evaluate"][0] == "fresh"
+    # alpha is not used by the uniform schedule: the schedule reruns (its recipe changed), writes the
+    # same bytes, and nothing after it is recomputed
+    again = pipeline.run("synthetic", overrides=TINY + ["schedule.alpha=0.3"], preset="neus-barf", artifacts=artifacts)
+    assert again["schedule"] == "computed"
+    assert {s for s, how in again.items() if how == "computed"} == {"schedule"}
 
 
 def test_max_rounds_stops_after_the_first_successor_round(tiny_run):

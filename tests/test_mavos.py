@@ -14,6 +14,8 @@ from manifoldneus.mavos import (
     spectral_embedding,
 )
 
+ALPHA = 0.65  # schedule.alpha's default (its one home is the `schedule` section)
+
 
 def path_graph(n, w=1.0):
     W = np.zeros((n, n))
@@ -184,7 +186,7 @@ def test_rounds_and_last_round_takes_rest():
         if i != j:
             W[i, j] = W[j, i] = rng.integers(1, 30)
     emb = spectral_embedding(W, d=8)
-    s = mavos_schedule(W, emb.phi)
+    s = mavos_schedule(W, emb.phi, alpha=ALPHA)
     assert s.settings["round_sizes"] == [15, 20, 14]
     assert s.n_rounds == 3 and s.n_anchors == 15
     assert sorted(s.picks) == list(range(n))
@@ -216,11 +218,17 @@ def test_uniform_one_round():
     assert set(s.role) == {"anchor"}
     assert np.all(s.s_tilde == 1.0)
     assert sorted(s.picks) == list(range(7))
+    # it uses neither alpha nor K nor M, so nothing it returns depends on them
+    t = mavos_schedule(W, spectral_embedding(W).phi, strategy="uniform", alpha=0.1, anchor_percent=80,
+                       successors_per_round=2)
+    assert t.settings == s.settings and t.picks == s.picks
+    for a, b in ((s.S, t.S), (s.order, t.order), (s.s_tilde_rounds, t.s_tilde_rounds), (s.L, t.L)):
+        assert np.array_equal(a, b)
 
 
 def test_ties_are_deterministic_and_nan_free():
     W = np.ones((6, 6)) - np.eye(6)  # complete graph: everything ties
-    s = mavos_schedule(W, None, coverage="E", anchor_percent=50, successors_per_round=1)
+    s = mavos_schedule(W, None, coverage="E", anchor_percent=50, successors_per_round=1, alpha=ALPHA)
     assert s.picks[0] == 0
     assert s.picks == sorted(s.picks)  # lowest index wins every tie (all row distances equal on K_n)
     for a in (s.S, s.L, s.C, s.s_tilde, s.s_tilde_rounds):
@@ -232,8 +240,8 @@ def test_ties_are_deterministic_and_nan_free():
     assert s.s_tilde[s.picks[-1]] == 0.0  # the single last candidate is not "most optimisable"
     # spectral coverage on a fully degenerate spectrum: still deterministic and finite
     emb = spectral_embedding(W, d=3)
-    a = mavos_schedule(W, emb.phi, anchor_percent=50, successors_per_round=1)
-    b = mavos_schedule(W, emb.phi, anchor_percent=50, successors_per_round=1)
+    a = mavos_schedule(W, emb.phi, anchor_percent=50, successors_per_round=1, alpha=ALPHA)
+    b = mavos_schedule(W, emb.phi, anchor_percent=50, successors_per_round=1, alpha=ALPHA)
     assert a.picks == b.picks and np.all(np.isfinite(a.S))
 
 
@@ -242,7 +250,7 @@ def test_disconnected_graph_excludes_small_component():
     W[:5, :5] = ring_graph(5, 4)
     W[5, 6] = W[6, 5] = 100  # a strong pair, but the smaller component
     emb = spectral_embedding(W, d=8)
-    s = mavos_schedule(W, emb.phi, c=W.sum(1))
+    s = mavos_schedule(W, emb.phi, c=W.sum(1), alpha=ALPHA)
     assert s.role[5] == s.role[6] == "excluded"
     assert s.round[5] == -1 and s.order[6] == -1 and s.s_tilde[5] == 0
     assert sorted(s.picks) == [0, 1, 2, 3, 4]
@@ -254,7 +262,7 @@ def test_single_view_component():
     W = np.zeros((3, 3))
     emb = spectral_embedding(W, d=4)
     assert emb.d == 0
-    s = mavos_schedule(W, emb.phi)
+    s = mavos_schedule(W, emb.phi, alpha=ALPHA)
     assert s.picks == [0] and s.role[1] == "excluded"
     assert np.all(np.isfinite(s.S))
 
@@ -272,19 +280,20 @@ def test_single_view_component():
         ({"alpha": float("nan")}, "alpha"),
         ({"strategy": "random"}, "strategy"),
         ({"coverage": "XE"}, "coverage"),
+        ({"alpha": None}, "the mavos strategy needs alpha"),
     ],
 )
 def test_guard_rails(kwargs, name):
     W = ring_graph(6)
     with pytest.raises(ValueError, match=name):
-        mavos_schedule(W, spectral_embedding(W).phi, **kwargs)
+        mavos_schedule(W, spectral_embedding(W).phi, **{"alpha": ALPHA, **kwargs})
 
 
 def test_bad_graphs_rejected():
     with pytest.raises(ValueError, match="symmetric"):
-        mavos_schedule(np.triu(ring_graph(5)), coverage="E")
+        mavos_schedule(np.triu(ring_graph(5)), coverage="E", alpha=ALPHA)
     with pytest.raises(ValueError, match="phi"):
-        mavos_schedule(ring_graph(5), None, coverage="SE")
+        mavos_schedule(ring_graph(5), None, coverage="SE", alpha=ALPHA)
     with pytest.raises(ValueError, match="d"):
         spectral_embedding(ring_graph(5), d=0)
 
@@ -307,8 +316,8 @@ def test_s_tilde_from_rank():
     W = ring_graph(10, 3.0)
     W[2, 3] = W[3, 2] = 9.0
     emb = spectral_embedding(W, d=4)
-    a = mavos_schedule(W, emb.phi, anchor_percent=40, successors_per_round=4)
-    b = mavos_schedule(W, emb.phi, anchor_percent=40, successors_per_round=4, s_tilde_from="rank")
+    a = mavos_schedule(W, emb.phi, anchor_percent=40, successors_per_round=4, alpha=ALPHA)
+    b = mavos_schedule(W, emb.phi, anchor_percent=40, successors_per_round=4, s_tilde_from="rank", alpha=ALPHA)
     assert a.picks == b.picks and np.allclose(a.S, b.S)
     for r, n in enumerate([4, 8, 10]):
         views = np.flatnonzero(b.optimised[r])
@@ -317,4 +326,4 @@ def test_s_tilde_from_rank():
         assert np.allclose(got, 1 - np.arange(n) / (n - 1))
     assert b.settings["s_tilde_from"] == "rank"
     with pytest.raises(ValueError, match="s_tilde_from"):
-        mavos_schedule(W, emb.phi, s_tilde_from="order")
+        mavos_schedule(W, emb.phi, s_tilde_from="order", alpha=ALPHA)
