@@ -35,7 +35,7 @@ from manifoldneus.field import FieldParams  # noqa: E402
 from manifoldneus.losses import LossParams  # noqa: E402
 from manifoldneus.metrics import psnr, ssim  # noqa: E402
 from manifoldneus.render import RenderParams  # noqa: E402
-from manifoldneus.train import TrainParams, Trainer, Views  # noqa: E402
+from manifoldneus.train import TrainParams, Trainer, TrainRun, Views  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "dtu" / "scan24"
 
@@ -128,11 +128,12 @@ def build_params(args):
     rp = RenderParams(n_uniform=args.n_uniform, n_importance=args.n_importance, sampler=args.sampler,
                       cache_res=args.cache_res)
     lp = LossParams(w_depth=args.w_depth, w_normal=args.w_normal, w_mask=args.w_mask, w_eikonal=args.w_eik)
-    tp = TrainParams(iters=args.iters, batch_rays=args.rays, image_size=args.size, warmup=args.warmup,
-                     time_budget_s=args.budget, threads=args.threads, log_every=50, c2f_iters=args.c2f,
+    tp = TrainParams(batch_rays=args.rays, image_size=args.size, warmup=args.warmup,
+                     time_budget_s=args.budget, log_every=50, c2f_iters=args.c2f,
                      fg_ray_fraction=args.fg_frac, lr=args.lr, grid_lr=args.grid_lr, ckpt_every=250)
+    run = TrainRun(iters=args.iters, threads=args.threads)
     for k, v in (args.set or []):
-        for obj in (fp, rp, lp, tp):
+        for obj in (fp, rp, lp, tp, run):
             if hasattr(obj, k):
                 cur = getattr(obj, k)
                 if isinstance(cur, bool):
@@ -141,7 +142,7 @@ def build_params(args):
                 break
         else:
             raise SystemExit(f"unknown parameter {k}")
-    return fp, rp, lp, tp
+    return fp, rp, lp, tp, run
 
 
 def throughput(views: Views, args, kinds=("grid", "mlp"), n_iter: int = 10) -> dict:
@@ -149,8 +150,8 @@ def throughput(views: Views, args, kinds=("grid", "mlp"), n_iter: int = 10) -> d
     for kind in kinds:
         a = argparse.Namespace(**vars(args))
         a.field = kind
-        fp, rp, lp, tp = build_params(a)
-        tr = Trainer(views, fp, rp, lp, tp, train_views=[i for i in range(views.n) if i % 8])
+        fp, rp, lp, tp, run = build_params(a)
+        tr = Trainer(views, fp, rp, lp, tp, run=run, train_views=[i for i in range(views.n) if i % 8])
         tr.train_step()
         tr.train_step()
         t0 = time.time()
@@ -221,10 +222,10 @@ def main():
         args.out.write_text(json.dumps(res, indent=2))
         return
 
-    fp, rp, lp, tp = build_params(args)
+    fp, rp, lp, tp, run = build_params(args)
     if args.budget_cpu:
         tp.time_budget_s = args.budget_cpu
-    tr = Trainer(views, fp, rp, lp, tp, train_views=train_ids)
+    tr = Trainer(views, fp, rp, lp, tp, run=run, train_views=train_ids)
     if args.budget_cpu:
         tr.clock = cpu_s  # budget and lr schedule in CPU seconds of this process
     evals = []
@@ -266,7 +267,7 @@ def main():
     while True:
         remaining = (args.budget_cpu - (cpu_s() - cpu0 - eval_cpu[0])) if args.budget_cpu else \
             (args.budget - (time.time() - t_train0 - eval_time[0]))
-        if remaining <= 0 or tr.step >= tp.iters or stop[0]:
+        if remaining <= 0 or tr.step >= run.iters or stop[0]:
             break
         summary = tr.train(time_budget_s=remaining, callback=cb)
         if args.budget_cpu and stop[0]:

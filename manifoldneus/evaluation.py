@@ -14,7 +14,7 @@ from manifoldneus.config import param
 from manifoldneus.field import FieldParams
 from manifoldneus.losses import LossParams
 from manifoldneus.render import RenderParams
-from manifoldneus.train import Trainer, TrainParams, Views
+from manifoldneus.train import Trainer, TrainParams, TrainRun, Views
 
 
 @dataclass
@@ -34,8 +34,9 @@ def trainer_from_checkpoint(path: Path, views: Views, device: str = "cpu") -> Tr
     """Rebuild the trainer a ``model.pt`` was saved from (its params travel inside it) and load it."""
     state = torch.load(str(path), map_location=device, weights_only=False)
     prm = state["params"]
-    tp = dataclasses.replace(TrainParams(**prm["train"]), device=device, learn_poses=bool(prm["train"]["learn_poses"]))
-    t = Trainer(views, FieldParams(**prm["field"]), RenderParams(**prm["render"]), LossParams(**prm["loss"]), tp)
+    run = dataclasses.replace(TrainRun(**prm["run"]), device=device)
+    t = Trainer(views, FieldParams(**prm["field"]), RenderParams(**prm["render"]), LossParams(**prm["loss"]),
+                TrainParams(**prm["train"]), run=run)
     t.load_state_dict(state)
     t.field.eval()
     return t

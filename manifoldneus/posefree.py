@@ -21,7 +21,7 @@ import torch
 
 from manifoldneus import correspondence, gate, io
 from manifoldneus.config import holdout_mask
-from manifoldneus.train import Trainer, Views
+from manifoldneus.train import Trainer, TrainRun, Views
 
 
 @dataclasses.dataclass
@@ -65,14 +65,12 @@ def subset_views(views: Views, ids, w2c_all: np.ndarray) -> Views:
                  pick(views.mono_normal), [views.names[i] for i in ids])
 
 
-def train_params(ctx, iters: int, pose_lr: float, pose_warmup_frac: float, learn_poses: bool):
-    """The `train` section adapted to one round: its length, the pose optimiser, the run's device."""
+def train_run(ctx, iters: int, pose_lr: float, pose_warmup_frac: float, learn_poses: bool) -> TrainRun:
+    """One round's run: its length and pose optimiser (the stage's section), the run's device."""
     run = ctx.section("run")
-    tp = ctx.section("train")
-    return dataclasses.replace(tp, iters=iters, learn_poses=learn_poses, pose_lr=pose_lr,
-                               pose_warmup=int(round(pose_warmup_frac * iters)),
-                               warmup=min(tp.warmup, iters // 4), device=run.device, seed=run.seed,
-                               threads=run.threads)
+    return TrainRun(iters=iters, learn_poses=learn_poses, pose_lr=pose_lr,
+                    pose_warmup=int(round(pose_warmup_frac * iters)), seed=run.seed, threads=run.threads,
+                    device=run.device)
 
 
 class Round:
@@ -84,7 +82,7 @@ class Round:
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.full_K = inputs.views.K[self.ids]
-        tp = train_params(ctx, iters, pose_lr, pose_warmup_frac, learn_poses)
+        run = train_run(ctx, iters, pose_lr, pose_warmup_frac, learn_poses)
         gate_p = ctx.section("gate")
         s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids])
         self.corr_p = ctx.section("correspondence")
@@ -107,7 +105,7 @@ class Round:
         self.pose_start = int(round(pose_start_frac * iters))
         self.trainer = Trainer(
             subset_views(inputs.views, self.ids, w2c_all), ctx.section("field"), ctx.section("render"),
-            ctx.section("loss"), tp,
+            ctx.section("loss"), ctx.section("train"), run=run,
             band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,
                                                                 gate_p),
             pose_start=self.pose_start, pose_loss=self.corr,

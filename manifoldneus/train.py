@@ -46,10 +46,10 @@ log = logging.getLogger("manifoldneus.train")
 
 @dataclass
 class TrainParams:
-    """Section `train`: optimisation of the neural surface."""
+    """Section `train`: how the neural surface is optimised, shared by every stage that trains one.
+    What differs per run (its length, whether poses learn and how fast, the device and seed) is
+    not here: see :class:`TrainRun`."""
 
-    iters: int = param(1500, "Training iterations (fast profile; the paper trains far longer). With a time budget, "
-                       "the cap of the iteration count", lo=1)
     time_budget_s: float = param(0.0, "Stop after this many seconds of training (0 = no limit); the lr schedules "
                                  "then follow max(iteration / iters, elapsed / budget)", lo=0.0)
     batch_rays: int = param(1024, "Rays per iteration", lo=1)
@@ -64,9 +64,6 @@ class TrainParams:
     c2f_iters: int = param(0, "Global coarse-to-fine: BARF ramp of the bands over this many iterations (0 = off); "
                            "ignored when a per-view band_weight_fn is given", lo=0)
     auto_aabb: bool = param(True, "grid: fit the grid box to the masks' visual hull (or the views' common frustum)")
-    learn_poses: bool = param(False, "Learn per-view se(3) corrections of the initial poses")
-    pose_lr: float = param(8e-3, "Peak AdamW lr of the pose corrections (supplement: 8e-3 anchors, 5e-3 later)", lo=0.0)
-    pose_warmup: int = param(100, "Pose lr warm-up iterations (supplement: 2k; scale with iters)", lo=0)
     pose_lr_min_ratio: float = param(0.1, "Final pose lr as a fraction of its peak", lo=0.0, hi=1.0)
     pose_weight_decay: float = param(0.0, "AdamW weight decay of the pose corrections", lo=0.0)
     ckpt_every: int = param(200, "Keep a rollback state (and write the checkpoint file, if any) every N iterations", lo=1)
@@ -77,9 +74,22 @@ class TrainParams:
     pose_jump_deg: float = param(30.0, "A learned pose that turns by more than this between two rollback states (or "
                                  "becomes non-finite) counts as divergence (0 = no check)", lo=0.0)
     log_every: int = param(100, "Log every N iterations", lo=1)
-    seed: int = param(0, "Random seed", lo=0)
-    threads: int = param(0, "torch CPU threads (0 = leave torch's default)", lo=0)
-    device: str = param("cpu", "torch device: 'cpu' or 'cuda'", choices=["cpu", "cuda"])
+
+
+@dataclass
+class TrainRun:
+    """One training run: its length, whether and how fast the poses learn, and where it runs. Not
+    a params.yaml section: each stage fills it from its own section (``anchors.iters``,
+    ``successors.pose_lr``, ``reference_surface.iters``) and from ``run``, so every value has one
+    home and a stage's fingerprint holds only what it uses."""
+
+    iters: int  # training iterations (with a time budget: the cap)
+    learn_poses: bool = False  # learn per-view se(3) corrections of the initial poses
+    pose_lr: float = 0.0  # peak AdamW lr of the corrections
+    pose_warmup: int = 0  # pose lr warm-up iterations
+    seed: int = 0
+    threads: int = 0  # torch CPU threads (0 = leave torch's default)
+    device: str = "cpu"
 
 
 @dataclass
@@ -185,23 +195,26 @@ class Trainer:
 
     Parameters: ``views`` (:class:`Views`, full resolution; resized to ``train_p.image_size``),
     ``train_views`` (indices used for training; default all), ``pose_views`` (indices whose poses
-    are learned when ``train_p.learn_poses``; default ``train_views``), ``band_weight_fn`` (see module
+    are learned when ``run.learn_poses``; default ``train_views``), ``band_weight_fn`` (see module
     doc), ``progress`` (callable(step, info dict) called every ``log_every`` iterations).
     """
 
     def __init__(self, views: Views, field_p: FieldParams | None = None, render_p: RenderParams | None = None,
-                 loss_p: LossParams | None = None, train_p: TrainParams | None = None, *, train_views=None,
-                 pose_views=None, band_weight_fn=None, progress=None, checkpoint_path=None, device: str | None = None,
+                 loss_p: LossParams | None = None, train_p: TrainParams | None = None, *, run: TrainRun,
+                 train_views=None, pose_views=None, band_weight_fn=None, progress=None, checkpoint_path=None,
                  pose_start: int = 0, pose_loss=None):
         self.fp = field_p or FieldParams()
         self.rp = render_p or RenderParams()
         self.lp = loss_p or LossParams()
         self.tp = train_p or TrainParams()
-        self.device = torch.device(device or self.tp.device)
-        if self.tp.threads > 0:
-            torch.set_num_threads(self.tp.threads)
-        torch.manual_seed(self.tp.seed)
-        self.rng = torch.Generator(device="cpu").manual_seed(self.tp.seed)
+        self.run = run
+        # a warm-up longer than a quarter of a (short) run would leave it no time at the peak lr
+        self.warmup = min(self.tp.warmup, run.iters // 4)
+        self.device = torch.device(run.device)
+        if run.threads > 0:
+            torch.set_num_threads(run.threads)
+        torch.manual_seed(run.seed)
+        self.rng = torch.Generator(device="cpu").manual_seed(run.seed)
         self.views = views.resized(self.tp.image_size)
         self.train_views = np.arange(self.views.n) if train_views is None else np.asarray(train_views, int)
         self.band_weight_fn = band_weight_fn
@@ -227,8 +240,8 @@ class Trainer:
         self.background = Background(self.bg_kind).to(dev)
         self.cache = SDFCache(self.rp.cache_res, self.rp.radius, device=dev) if self.rp.sampler == "cache" else None
         self.cams = PoseCorrections(
-            self.w2c_init, (self.train_views if pose_views is None else pose_views) if self.tp.learn_poses else None,
-            start=pose_start, lr=self.tp.pose_lr, weight_decay=self.tp.pose_weight_decay)
+            self.w2c_init, (self.train_views if pose_views is None else pose_views) if run.learn_poses else None,
+            start=pose_start, lr=run.pose_lr, weight_decay=self.tp.pose_weight_decay)
         self._build_optimizers()
         self.step = 0
         self.lr_scale = 1.0
@@ -239,7 +252,7 @@ class Trainer:
         self._loss_ema = None
         self._budget = 0.0
         self._t_start = None
-        self._target, self._t_train = self.tp.iters, None  # set by train()
+        self._target, self._t_train = run.iters, None  # set by train()
         self.clock = time.time  # budget / schedule clock (e.g. time.process_time for CPU-time budgets)
         self.history: list[dict] = []
         self.extra_state: dict = {}  # a caller's own per-run records, checkpointed with the trainer
@@ -324,7 +337,7 @@ class Trainer:
             "rollbacks": self.rollbacks,
             "cache": None if self.cache is None else self.cache.state_dict(),
             "params": {"field": asdict(self.fp), "render": asdict(self.rp), "loss": asdict(self.lp),
-                       "train": asdict(self.tp)},
+                       "train": asdict(self.tp), "run": asdict(self.run)},
             "bg_kind": self.bg_kind,
             "rng": self.rng.get_state(),
             "torch_rng": torch.get_rng_state(),
@@ -415,15 +428,15 @@ class Trainer:
         completes by the budget)."""
         if self._budget and self._t_start is not None:
             frac = (self.clock() - self._t_start) / self._budget
-            return max(self.step, int(frac * self.tp.iters))
+            return max(self.step, int(frac * self.run.iters))
         return self.step
 
     def set_lr(self) -> None:
         st = self.schedule_step()
-        f = lr_factor(st, self.tp.iters, self.tp.warmup, self.tp.lr_min_ratio) * self.lr_scale
+        f = lr_factor(st, self.run.iters, self.warmup, self.tp.lr_min_ratio) * self.lr_scale
         for g in self.opt.param_groups:
             g["lr"] = g["base_lr"] * f
-        self.cams.set_lr(lr_factor(st, self.tp.iters, self.tp.pose_warmup, self.tp.pose_lr_min_ratio) * self.lr_scale)
+        self.cams.set_lr(lr_factor(st, self.run.iters, self.run.pose_warmup, self.tp.pose_lr_min_ratio) * self.lr_scale)
 
     def update_cache(self) -> None:
         if self.cache is not None:
@@ -459,7 +472,7 @@ class Trainer:
             return {"rollback": True}
         # The field's loss only: the pose term enters at pose_start, at a size set by how far the
         # initial poses are from the matches (a perturbed start: 20x the field's), and is not a divergence.
-        if (self._loss_ema is not None and self.step > self.tp.warmup
+        if (self._loss_ema is not None and self.step > self.warmup
                 and field_loss > self.tp.diverge_factor * self._loss_ema):
             self._rollback(f"loss {field_loss:.4g} > {self.tp.diverge_factor} x running mean {self._loss_ema:.4g}")
             return {"rollback": True}
@@ -504,10 +517,10 @@ class Trainer:
         return f"{why} in {self.tp.ckpt_every} iterations (pose_jump_deg = {self.tp.pose_jump_deg:g})"
 
     def train(self, iters: int | None = None, time_budget_s: float | None = None, callback=None) -> dict:
-        """Train until ``iters`` (default ``train_p.iters``) total iterations or the time budget.
+        """Train until ``iters`` (default ``run.iters``) total iterations or the time budget.
         ``callback(trainer, info)`` runs every ``log_every`` iterations (and may return True to stop).
         Returns a summary dict."""
-        iters = self.tp.iters if iters is None else iters
+        iters = self.run.iters if iters is None else iters
         budget = self.tp.time_budget_s if time_budget_s is None else time_budget_s
         t0 = self.clock()
         t_wall = time.time()

@@ -6,7 +6,6 @@ synthesis at the training resolution.
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -14,7 +13,7 @@ import numpy as np
 
 from manifoldneus import artifacts, evaluation, io
 from manifoldneus.config import holdout_mask, param
-from manifoldneus.train import Trainer
+from manifoldneus.train import Trainer, TrainRun
 
 
 @dataclass
@@ -22,8 +21,8 @@ class Params:
     """Section `reference_surface` of params.yaml."""
 
     enabled: bool = param(True, "Train the GT-pose reference (False: write a note and skip)")
-    iters: int = param(0, "Training iterations (0 = train.iters); bench/bench_refine.py sets the pose-free rounds' "
-                       "total, for a comparison at equal iterations", lo=0)
+    iters: int = param(1500, "Training iterations; bench/bench_refine.py sets the pose-free rounds' total, for a "
+                       "comparison at equal iterations", lo=1)
 
 
 UPSTREAM = ("ingest", "ground_truth")
@@ -43,15 +42,14 @@ def run(ctx) -> None:
     held = holdout_mask(len(views.names), ctx.section("split"))
     run_p = ctx.section("run")
     tp = ctx.section("train")
-    tp = dataclasses.replace(tp, iters=ctx.params.iters or tp.iters, learn_poses=False, device=run_p.device,
-                             seed=run_p.seed, threads=run_p.threads)
+    run = TrainRun(iters=ctx.params.iters, seed=run_p.seed, threads=run_p.threads, device=run_p.device)
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     ckpt = ctx.checkpoint_dir / "model.pt"
-    trainer = Trainer(views, ctx.section("field"), ctx.section("render"), ctx.section("loss"), tp,
+    trainer = Trainer(views, ctx.section("field"), ctx.section("render"), ctx.section("loss"), tp, run=run,
                       train_views=np.flatnonzero(~held), checkpoint_path=ckpt)
     if trainer.resume(ckpt):
         ctx.log.info("resumed from its checkpoint at step %d", trainer.step)
-    bar = ctx.progress(total=tp.iters, desc="reference_surface", initial=trainer.step)
+    bar = ctx.progress(total=run.iters, desc="reference_surface", initial=trainer.step)
     started = time.time()
     summary = trainer.train(callback=lambda t, info: (bar.update(info["step"] - bar.n),
                                                       bar.set_postfix(loss=f"{info['loss']:.4f}"))[-1])

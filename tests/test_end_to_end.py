@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 
 import pipeline
+from manifoldneus.config import ParamError
 from manifoldneus import io
 
 TINY = [
     "ingest.synthetic_views=20", "ingest.synthetic_resolution=128", "ingest.synthetic_surface_points=4000",
-    "train.iters=40", "train.image_size=32", "train.batch_rays=256", "train.warmup=5", "train.log_every=10",
+    "reference_surface.iters=40", "train.image_size=32", "train.batch_rays=256", "train.warmup=5", "train.log_every=10",
     "anchors.iters=40", "successors.iters=30", "successors.final_iters=40",
     "field.grid_levels=3", "field.grid_max_res=32", "render.cache_res=32",
     "meshing.resolution=48", "evaluate.chamfer_points=4000", "schedule.successors_per_round=4",
@@ -69,6 +70,17 @@ def test_alpha_change_reruns_schedule_and_after_only(tiny_run):
     st = pipeline.status("synthetic", overrides=TINY + ["schedule.alpha=0.3"], artifacts=artifacts)
     stale = {s for s, (state, _) in st.items() if state != "fresh"}
     assert stale == {"schedule", "anchors", "successors", "mesh", "evaluate"}
+
+
+def test_each_value_has_one_home(tiny_run):
+    """The reference's length is its own: changing it touches the reference and the evaluation
+    only, and the pose-free stages' lengths are not in `train` (issue 17 item 2)."""
+    artifacts, _ = tiny_run
+    st = pipeline.status("synthetic", overrides=TINY + ["reference_surface.iters=41"], artifacts=artifacts)
+    assert {s for s, (state, _) in st.items() if state != "fresh"} == {"reference_surface", "evaluate"}
+    for key in ("train.iters", "train.pose_lr", "train.seed", "train.device"):
+        with pytest.raises(ParamError, match=f"unknown parameter {key}"):
+            pipeline.status("synthetic", overrides=TINY + [f"{key}=1"], artifacts=artifacts)
 
 
 def test_neus_barf_preset_reuses_the_front_end(tiny_run):

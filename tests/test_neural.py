@@ -15,7 +15,7 @@ from manifoldneus.meshing import cull_by_masks, cull_unseen, extract_mesh, previ
 from manifoldneus.metrics import chamfer, psnr, ssim
 from manifoldneus.rays import camera_rays, pixel_grid, sphere_bounds
 from manifoldneus.render import Background, RenderParams, SDFCache, render_image, render_rays
-from manifoldneus.train import TrainParams, Trainer, Views
+from manifoldneus.train import TrainParams, Trainer, TrainRun, Views
 
 torch.set_num_threads(1)
 
@@ -194,14 +194,14 @@ def tiny_params(iters):
     fp = FieldParams(kind="grid", grid_levels=3, grid_min_res=8, grid_max_res=24, decoder_width=32, dir_bands=2)
     rp = RenderParams(n_uniform=6, n_importance=10, n_coarse=32, cache_res=24, cache_every=20,
                       eikonal_samples=128, eikonal_uniform=32)
-    tp = TrainParams(iters=iters, batch_rays=256, image_size=0, warmup=10, ckpt_every=10, log_every=10, threads=1)
-    return fp, rp, tp
+    tp = TrainParams(batch_rays=256, image_size=0, warmup=10, ckpt_every=10, log_every=10)
+    return fp, rp, tp, TrainRun(iters=iters, threads=1)
 
 
 def test_training_loss_falls_and_checkpoint_roundtrip(tmp_path):
     views = synthetic_views()
-    fp, rp, tp = tiny_params(200)
-    tr = Trainer(views, fp, rp, LossParams(), tp)
+    fp, rp, tp, run = tiny_params(200)
+    tr = Trainer(views, fp, rp, LossParams(), tp, run=run)
     losses = []
     tr.train(callback=lambda t, info: losses.append(info["loss_rgb"]))
     assert np.mean(losses[-3:]) < 0.6 * np.mean(losses[:2])
@@ -209,7 +209,7 @@ def test_training_loss_falls_and_checkpoint_roundtrip(tmp_path):
     assert psnr(out["rgb"], views.images[0], views.masks[0]) > 15
     path = tmp_path / "ck.pt"
     tr.save(path)
-    tr2 = Trainer(views, fp, rp, LossParams(), tp)
+    tr2 = Trainer(views, fp, rp, LossParams(), tp, run=run)
     tr2.load(path)
     assert tr2.step == tr.step
     s1 = tr.field.sdf(torch.zeros(1, 3))
@@ -219,8 +219,8 @@ def test_training_loss_falls_and_checkpoint_roundtrip(tmp_path):
 
 def test_rollback_on_injected_nan():
     views = synthetic_views(n=4, size=16)
-    fp, rp, tp = tiny_params(40)
-    tr = Trainer(views, fp, rp, LossParams(), tp)
+    fp, rp, tp, run = tiny_params(40)
+    tr = Trainer(views, fp, rp, LossParams(), tp, run=run)
     for _ in range(15):
         tr.train_step()
     assert tr.step == 15
@@ -236,9 +236,10 @@ def test_rollback_on_injected_nan():
 
 def test_pose_jump_rolls_back_to_the_last_good_state():
     views = synthetic_views(n=4, size=16)
-    fp, rp, tp = tiny_params(40)
-    tp = dataclasses.replace(tp, learn_poses=True, pose_lr=1e-3, pose_jump_deg=10.0)
-    tr = Trainer(views, fp, rp, LossParams(), tp)
+    fp, rp, tp, run = tiny_params(40)
+    tp = dataclasses.replace(tp, pose_jump_deg=10.0)
+    run = dataclasses.replace(run, learn_poses=True, pose_lr=1e-3)
+    tr = Trainer(views, fp, rp, LossParams(), tp, run=run)
     for _ in range(12):
         tr.train_step()
     good_xi = tr._good_state["cams"]["xi"].clone()  # the state of step 10
@@ -260,8 +261,8 @@ def test_a_large_pose_term_switching_on_is_not_a_divergence():
     """The correspondence term enters at pose_start at its own scale (a perturbed start: ~20x the
     field's loss); the divergence check watches the field's loss, so no rollback follows."""
     views = synthetic_views(n=4, size=16)
-    fp, rp, tp = tiny_params(30)
-    tp = dataclasses.replace(tp, learn_poses=True, pose_lr=1e-3)
+    fp, rp, tp, run = tiny_params(30)
+    run = dataclasses.replace(run, learn_poses=True, pose_lr=1e-3)
 
     class HugePoseTerm:
         weight = 1.0
@@ -269,7 +270,7 @@ def test_a_large_pose_term_switching_on_is_not_a_divergence():
         def __call__(self, w2c, rng, step):
             return 1e3 + 0.0 * w2c.sum()
 
-    tr = Trainer(views, fp, rp, LossParams(), tp, pose_start=15, pose_loss=HugePoseTerm())
+    tr = Trainer(views, fp, rp, LossParams(), tp, run=run, pose_start=15, pose_loss=HugePoseTerm())
     tr.train()
     assert tr.step == 30 and tr.rollbacks == 0 and tr.history[-1]["loss"] > 1e3
 
@@ -308,21 +309,21 @@ def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
     checkpoint and resumed from it ends exactly where the uninterrupted run does (RNG states,
     optimiser state and history are in the checkpoint)."""
     views = synthetic_views(n=4, size=16)
-    fp, rp, tp = tiny_params(35)
-    tp = dataclasses.replace(tp, learn_poses=True, pose_lr=1e-3)
+    fp, rp, tp, run = tiny_params(35)
+    run = dataclasses.replace(run, learn_poses=True, pose_lr=1e-3)
     runs = []
     for _ in range(2):
-        tr = Trainer(views, fp, rp, LossParams(), tp, pose_start=5)
+        tr = Trainer(views, fp, rp, LossParams(), tp, run=run, pose_start=5)
         tr.train()
         runs.append(tr)
     for a, b in zip(_fingerprint(runs[0]), _fingerprint(runs[1])):
         assert torch.equal(a, b)
 
     ck = tmp_path / "ck.pt"
-    first = Trainer(views, fp, rp, LossParams(), tp, pose_start=5, checkpoint_path=ck)
+    first = Trainer(views, fp, rp, LossParams(), tp, run=run, pose_start=5, checkpoint_path=ck)
     first.train(iters=27)  # "killed" at step 27: the file holds step 20
     assert torch.load(ck, weights_only=False)["step"] == 20
-    resumed = Trainer(views, fp, rp, LossParams(), tp, pose_start=5)
+    resumed = Trainer(views, fp, rp, LossParams(), tp, run=run, pose_start=5)
     resumed.load(ck)
     resumed.train()
     assert resumed.step == runs[0].step == 35
@@ -334,9 +335,9 @@ def test_same_seed_same_result_and_resume_equals_uninterrupted(tmp_path):
 def test_poses_stay_frozen_until_pose_start_exactly():
     """pose_start is a step, not rounded to log_every (the corrections start moving at that step)."""
     views = synthetic_views(n=4, size=16)
-    fp, rp, tp = tiny_params(20)
-    tp = dataclasses.replace(tp, learn_poses=True, pose_lr=1e-2, log_every=10)
-    tr = Trainer(views, fp, rp, LossParams(), tp, pose_start=13)
+    fp, rp, tp, run = tiny_params(20)
+    run = dataclasses.replace(run, learn_poses=True, pose_lr=1e-2)
+    tr = Trainer(views, fp, rp, LossParams(), tp, run=run, pose_start=13)
     for _ in range(13):
         tr.train_step()
     assert torch.equal(tr.poses(), tr.w2c_init)  # steps 0-12: frozen (xi may not even have a gradient)
@@ -347,16 +348,16 @@ def test_poses_stay_frozen_until_pose_start_exactly():
 
 def test_truncated_checkpoint_is_discarded_not_fatal(tmp_path, caplog):
     views = synthetic_views(n=4, size=16)
-    fp, rp, tp = tiny_params(10)
-    tr = Trainer(views, fp, rp, LossParams(), tp)
+    fp, rp, tp, run = tiny_params(10)
+    tr = Trainer(views, fp, rp, LossParams(), tp, run=run)
     tr.train()
     ck = tmp_path / "round_0.pt"
     tr.save(ck)
     assert [p.name for p in tmp_path.iterdir()] == ["round_0.pt"]  # no temporary file left behind
-    fresh = Trainer(views, fp, rp, LossParams(), tp)
+    fresh = Trainer(views, fp, rp, LossParams(), tp, run=run)
     assert fresh.resume(ck) and fresh.step == 10
     ck.write_bytes(ck.read_bytes()[:1000])  # killed while writing (before atomic saves)
-    again = Trainer(views, fp, rp, LossParams(), tp)
+    again = Trainer(views, fp, rp, LossParams(), tp, run=run)
     assert not again.resume(ck) and again.step == 0 and not ck.exists()
     assert "unreadable" in caplog.text
     assert not again.resume(tmp_path / "absent.pt")

@@ -9,7 +9,7 @@ from manifoldneus.field import FieldParams
 from manifoldneus.losses import LossParams
 from manifoldneus.pose_metrics import evaluate_poses
 from manifoldneus.render import RenderParams
-from manifoldneus.train import TrainParams, Trainer, Views
+from manifoldneus.train import TrainParams, Trainer, TrainRun, Views
 
 
 def perturbed(w2c: np.ndarray, rot_deg: float, trans_sigma: float, seed: int = 0) -> np.ndarray:
@@ -34,9 +34,9 @@ def test_short_joint_run_reduces_rotation_error_of_perturbed_poses():
     fp = FieldParams(kind="grid", grid_levels=4, grid_min_res=8, grid_max_res=48, decoder_width=32, dir_bands=2)
     rp = RenderParams(n_uniform=8, n_importance=16, n_coarse=32, cache_res=32, cache_every=20,
                       eikonal_samples=128, eikonal_uniform=32)
-    tp = TrainParams(iters=200, batch_rays=256, image_size=0, warmup=20, log_every=50, threads=2,
-                     learn_poses=True, pose_lr=3e-3, pose_warmup=20)
-    trainer = Trainer(views, fp, rp, LossParams(), tp, pose_views=np.arange(1, len(views.names)))  # view 0 fixes the gauge
+    tp = TrainParams(batch_rays=256, image_size=0, warmup=20, log_every=50)
+    run = TrainRun(iters=200, threads=2, learn_poses=True, pose_lr=3e-3, pose_warmup=20)
+    trainer = Trainer(views, fp, rp, LossParams(), tp, run=run, pose_views=np.arange(1, len(views.names)))  # view 0 fixes the gauge
     trainer.train()
     after = evaluate_poses(trainer.poses_numpy(), scene.w2c)["summary"]
     assert before["rot_err_deg"]["mean"] > 2.5

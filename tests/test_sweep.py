@@ -17,7 +17,7 @@ from tests.test_end_to_end import TINY
 # only) and fewer iterations, so that each back-end rerun takes seconds; poses learn from the first
 # iteration (the fast profile's frozen first half would leave 10-iteration rounds at their initial poses).
 SWEEP_TINY = [*TINY, "schedule.successors_per_round=20", "anchors.iters=10", "successors.iters=10",
-              "successors.final_iters=0", "train.iters=10", "anchors.pose_start_frac=0", "successors.pose_start_frac=0"]
+              "successors.final_iters=0", "reference_surface.iters=10", "anchors.pose_start_frac=0", "successors.pose_start_frac=0"]
 NOT_REACHED_BY_ALPHA = ("ingest", "ground_truth", "features", "matching", "covisibility", "spectral", "reference",
                         "evaluate_poses", "reference_surface")
 
