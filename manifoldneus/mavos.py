@@ -79,6 +79,19 @@ def check_graph(W: np.ndarray) -> np.ndarray:
     return 0.5 * (W + W.T)
 
 
+def covisibility_matrix(n_views: int, pairs, counts, min_inliers: int = 0) -> np.ndarray:
+    """W [N,N] float64 from pairs [P,2] and their inlier counts [P]: symmetric, zero diagonal; pairs
+    with fewer than ``min_inliers`` (at least 1) get no edge; a pair listed twice keeps the larger count."""
+    W = np.zeros((n_views, n_views))
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    counts = np.asarray(counts, np.float64).reshape(-1)
+    keep = (counts >= max(min_inliers, 1)) & (pairs[:, 0] != pairs[:, 1])
+    i, j, c = pairs[keep, 0], pairs[keep, 1], counts[keep]
+    np.maximum.at(W, (i, j), c)
+    np.maximum.at(W, (j, i), c)
+    return W
+
+
 def connected_components(W: np.ndarray) -> list[list[int]]:
     """Connected components of the graph with edges W > 0, largest first (ties: lowest index)."""
     from scipy.sparse import csr_matrix
@@ -89,6 +102,14 @@ def connected_components(W: np.ndarray) -> list[list[int]]:
     comps = [sorted(np.flatnonzero(labels == k).tolist()) for k in range(n)]
     comps.sort(key=lambda c: (-len(c), c[0]))
     return comps
+
+
+def component_labels(W: np.ndarray) -> np.ndarray:
+    """[N] int32: each view's index in :func:`connected_components` (0 = the largest)."""
+    labels = np.zeros(len(W), np.int32)
+    for k, comp in enumerate(connected_components(W)):
+        labels[comp] = k
+    return labels
 
 
 def largest_component(W: np.ndarray) -> np.ndarray:

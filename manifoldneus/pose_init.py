@@ -43,6 +43,7 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 
 from .cameras import camera_centers, sim3_matrix, to_4x4, transform_w2c
+from .mavos import covisibility_matrix
 
 # --------------------------------------------------------------------------- inputs
 
@@ -91,12 +92,9 @@ def _as_pair(p) -> PairMatch:
 
 
 def covisibility_from_pairs(pairs: Sequence, n_views: int) -> np.ndarray:
-    """W [N,N] float: number of verified inliers per pair (symmetric, zero diagonal)."""
-    W = np.zeros((n_views, n_views))
-    for p in map(_as_pair, pairs):
-        W[p.i, p.j] = W[p.j, p.i] = len(p.matches)
-    np.fill_diagonal(W, 0.0)
-    return W
+    """W [N,N]: :func:`~manifoldneus.mavos.covisibility_matrix` of the pairs' verified inlier counts."""
+    pairs = [_as_pair(p) for p in pairs]
+    return covisibility_matrix(n_views, [(p.i, p.j) for p in pairs], [len(p.matches) for p in pairs])
 
 
 def relative_pose(p: PairMatch, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:

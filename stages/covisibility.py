@@ -2,7 +2,7 @@
 
 ``W[i, j] = n_ij``, the number of verified inlier matches of pair (i, j) (symmetric, zero
 diagonal); pairs below ``min_inliers`` get ``n_ij := 0``. ``c_i = sum_j W_ij`` is the cumulative
-count. Connected components of the graph W > 0 (``scipy.sparse.csgraph``), largest first.
+count. Connected components of the graph W > 0, largest first. The maths: ``manifoldneus/mavos.py``.
 
 Outputs:
 
@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from manifoldneus import mavos
 from manifoldneus.config import param
 from manifoldneus.io import load_arrays, load_attrs, save_arrays, save_figure, save_json
 
@@ -41,51 +42,14 @@ OUTPUTS = ("covisibility.zarr", "components.json", "covisibility.png", "graph.pn
 # --------------------------------------------------------------------------- plain functions
 
 
-def build_W(n_views: int, pairs: np.ndarray, counts: np.ndarray, min_inliers: int = 0) -> np.ndarray:
-    """Symmetric [N,N] float64 matrix of inlier counts with a zero diagonal."""
-    W = np.zeros((n_views, n_views))
-    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-    counts = np.asarray(counts, np.float64).reshape(-1)
-    keep = (counts >= max(min_inliers, 1)) & (pairs[:, 0] != pairs[:, 1])
-    i, j, c = pairs[keep, 0], pairs[keep, 1], counts[keep]
-    # a pair listed twice (i,j) and (j,i) keeps the larger count
-    np.maximum.at(W, (i, j), c)
-    np.maximum.at(W, (j, i), c)
-    np.fill_diagonal(W, 0.0)
-    return W
-
-
-def components(W: np.ndarray) -> tuple[int, np.ndarray]:
-    """Connected components of the graph W > 0. Returns (count, labels [N]) with labels ordered
-    by decreasing component size (0 = largest; ties broken by the smallest view index)."""
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    n, labels = connected_components(csr_matrix(np.asarray(W) > 0), directed=False)
-    sizes = np.bincount(labels, minlength=n)
-    first = np.array([np.flatnonzero(labels == k)[0] for k in range(n)])
-    order = sorted(range(n), key=lambda k: (-sizes[k], first[k]))
-    remap = np.empty(n, np.int32)
-    remap[order] = np.arange(n)
-    return int(n), remap[labels]
-
-
 def spectral_layout(W: np.ndarray) -> np.ndarray:
-    """2-D node positions: the 2 smallest non-trivial eigenvectors of the normalised Laplacian
-    (per component; components side by side). Falls back to a circle for tiny components."""
-    n = len(W)
-    pos = circle_layout(n)
-    _, labels = components(W)
+    """2-D node positions: the first two spectral coordinates (:func:`mavos.spectral_embedding`) of
+    each component, components side by side; a small circle for components of fewer than 4 views."""
+    pos = circle_layout(len(W))
     x_off = 0.0
-    for k in range(labels.max() + 1 if n else 0):
-        idx = np.flatnonzero(labels == k)
+    for idx in mavos.connected_components(W) if len(W) else []:
         if len(idx) >= 4:
-            Wk = W[np.ix_(idx, idx)]
-            d = Wk.sum(1)
-            dm = 1.0 / np.sqrt(np.maximum(d, 1e-12))
-            L = np.eye(len(idx)) - dm[:, None] * Wk * dm[None, :]
-            _, vec = np.linalg.eigh(L)
-            p = vec[:, 1:3] * dm[:, None]
+            p = mavos.spectral_embedding(W, d=2, component=idx).phi[idx]
             p = p - p.mean(0)
             p = p / max(np.abs(p).max(), 1e-12)
         else:
@@ -160,14 +124,15 @@ def run(ctx) -> None:
     names = list(attrs["names"])
     n = len(names)
 
-    W = build_W(n, arrays["pairs"], arrays["n_inliers"], p.min_inliers)
+    W = mavos.covisibility_matrix(n, arrays["pairs"], arrays["n_inliers"], p.min_inliers)
     if not W.any():
         raise RuntimeError(f"no pair of the {n} views has {p.min_inliers} or more verified matches: the photos do not "
                            "overlap (or are identical, or featureless); take photos that see the object from nearby "
                            "viewpoints, or lower covisibility.min_inliers")
     c = W.sum(1)
-    n_comp, labels = components(W)
-    comp_idx = [np.flatnonzero(labels == k).tolist() for k in range(n_comp)]
+    comp_idx = mavos.connected_components(W)
+    labels = mavos.component_labels(W)
+    n_comp = len(comp_idx)
     comps = [[names[v] for v in idx] for idx in comp_idx]
     outside = [names[v] for v in range(n) if labels[v] != 0]
     isolated = [names[v] for v in range(n) if c[v] == 0]

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from manifoldneus import artifacts, io
+from manifoldneus import artifacts, io, mavos
 from manifoldneus.cameras import decompose_projection, look_at_w2c, rotation_angle_deg
 from stages import covisibility, features, matching, reference
 from tests.conftest import SHARED_DATA, needs_dtu
@@ -331,16 +331,13 @@ def test_all_featureless_is_an_error(tmp_path):
 def test_covisibility_handmade_disconnected():
     pairs = np.array([[0, 1], [1, 2], [3, 4], [4, 3], [2, 2], [0, 5], [5, 6]])
     counts = np.array([50, 30, 20, 25, 99, 10, 0])
-    Wm = covisibility.build_W(7, pairs, counts, min_inliers=15)
+    Wm = mavos.covisibility_matrix(7, pairs, counts, min_inliers=15)
     np.testing.assert_array_equal(Wm, Wm.T)
     assert (np.diag(Wm) == 0).all()
     assert Wm[0, 1] == 50 and Wm[3, 4] == 25 and Wm[0, 5] == 0
-    n, labels = covisibility.components(Wm)
-    assert n == 4
-    assert list(labels) == [0, 0, 0, 1, 1, 2, 3]  # largest first, ties by smallest view index
-    W0 = covisibility.build_W(7, pairs, counts, min_inliers=0)
-    n0, labels0 = covisibility.components(W0)
-    assert n0 == 3 and list(labels0) == [0, 0, 0, 1, 1, 0, 2]  # the zero-count pair (5, 6) is no edge
+    assert list(mavos.component_labels(Wm)) == [0, 0, 0, 1, 1, 2, 3]  # largest first, ties by smallest view index
+    W0 = mavos.covisibility_matrix(7, pairs, counts, min_inliers=0)
+    assert list(mavos.component_labels(W0)) == [0, 0, 0, 1, 1, 0, 2]  # the zero-count pair (5, 6) is no edge
     pos = covisibility.spectral_layout(Wm)
     assert pos.shape == (7, 2) and np.isfinite(pos).all()
 
