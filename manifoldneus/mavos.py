@@ -233,33 +233,16 @@ def coverage_distances(W: np.ndarray, phi: np.ndarray | None, coverage: str = "S
     return np.sqrt((diff**2).sum(-1))
 
 
-def normalise(x: np.ndarray) -> np.ndarray:
-    """Min-max normalise to [0, 1] over the candidates; all equal -> 0 for all."""
+def normalise(x: np.ndarray, lo_hi=None, tie: float = 0.0) -> np.ndarray:
+    """Min-max normalise to [0, 1]: ``(x - lo) / (hi - lo)`` over x's own (min, max), or over a
+    given ``lo_hi`` (clipped to [0, 1]); an empty range (all candidates tie) gives ``tie`` to all."""
     x = np.asarray(x, dtype=np.float64)
     if x.size == 0:
         return x.copy()
-    lo, hi = float(x.min()), float(x.max())
-    if hi > lo:
-        return (x - lo) / (hi - lo)
-    return np.zeros_like(x)
-
-
-def _rescale(x: np.ndarray, lo_hi) -> np.ndarray:
-    """``(x - lo) / (hi - lo)`` clipped to [0, 1]; 0 when the range is empty."""
-    lo, hi = float(lo_hi[0]), float(lo_hi[1])
+    lo, hi = (float(x.min()), float(x.max())) if lo_hi is None else (float(lo_hi[0]), float(lo_hi[1]))
     if not hi > lo:
-        return np.zeros_like(np.asarray(x, dtype=np.float64))
-    return np.clip((np.asarray(x, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
-
-
-def _normalise_tie_one(x: np.ndarray) -> np.ndarray:
-    x = np.asarray(x, dtype=np.float64)
-    if x.size == 0:
-        return x.copy()
-    lo, hi = float(x.min()), float(x.max())
-    if hi > lo:
-        return (x - lo) / (hi - lo)
-    return np.ones_like(x)
+        return np.full_like(x, tie)
+    return np.clip((x - lo) / (hi - lo), 0.0, 1.0)
 
 
 # --------------------------------------------------------------------------- scheduling
@@ -415,7 +398,7 @@ def mavos_schedule(
             else:
                 Lraw, Craw = L_run[cand], C_run[cand]
                 if len(cand) == 1 and ranges is not None:  # forced pick: reuse the last candidates' ranges
-                    Lc, Cc = _rescale(Lraw, ranges[0]), _rescale(Craw, ranges[1])
+                    Lc, Cc = normalise(Lraw, ranges[0]), normalise(Craw, ranges[1])
                 else:
                     Lc, Cc = normalise(Lraw), normalise(Craw)
                     ranges = ((Lraw.min(), Lraw.max()), (Craw.min(), Craw.max()))
@@ -446,7 +429,7 @@ def mavos_schedule(
             ranks = np.argsort(np.argsort(order[views], kind="stable"), kind="stable")
             s_tilde_rounds[r, views] = 1.0 - ranks / max(len(views) - 1, 1) if len(views) > 1 else 1.0
         else:
-            s_tilde_rounds[r, views] = _normalise_tie_one(S[views])
+            s_tilde_rounds[r, views] = normalise(S[views], tie=1.0)
     s_tilde = np.zeros(N)
     for v in picks:
         s_tilde[v] = s_tilde_rounds[rnd[v], v]

@@ -257,7 +257,7 @@ def match_pairs(
     threshold_px: float = 1.0,
     confidence: float = 0.999,
     max_iters: int = 10000,
-    min_inliers: int = 15,
+    min_inliers: int = Params.min_inliers,
     adaptive_iters: bool = True,
     workers: int = 2,
     progress=None,
@@ -394,7 +394,8 @@ def run(ctx) -> None:
         chunk_first=False,
     )
     n_inl = res["n_inliers"]
-    good = int((n_inl >= 15).sum())
+    counted = n_inl >= p.min_inliers
+    good = int(counted.sum())
     not_verified = int((res["n_raw"] < p.min_inliers).sum())
     if not_verified:
         ctx.log.info(
@@ -402,14 +403,14 @@ def run(ctx) -> None:
             "not verified (they cannot reach min_inliers), stored with 0 inliers"
         )
     ctx.log.info(
-        f"{len(pairs)} pairs matched in {seconds:.2f} s ({geometry}, {p.method}): {good} with >= 15 inliers, "
+        f"{len(pairs)} pairs matched in {seconds:.2f} s ({geometry}, {p.method}): {good} with >= {p.min_inliers} inliers, "
         f"mean {n_inl.mean():.1f} inliers, mean {res['n_raw'].mean():.1f} raw matches"
     )
     ctx.metrics["n_pairs"] = int(len(pairs))
-    ctx.metrics["pairs_ge15_inliers"] = good
+    ctx.metrics["pairs_ge_min_inliers"] = good
     ctx.metrics["pairs_not_verified"] = not_verified
     ctx.metrics["mean_inliers"] = float(n_inl.mean()) if len(n_inl) else 0.0
-    ctx.metrics["mean_inliers_ge15"] = float(n_inl[n_inl >= 15].mean()) if good else 0.0
+    ctx.metrics["mean_inliers_ge_min_inliers"] = float(n_inl[counted].mean()) if good else 0.0
     ctx.metrics["mean_raw_matches"] = float(res["n_raw"].mean()) if len(n_inl) else 0.0
     ctx.metrics["geometry"] = geometry
     ctx.metrics["seconds"] = float(seconds)

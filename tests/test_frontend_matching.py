@@ -298,7 +298,7 @@ def test_stage_chain_with_featureless_view(tmp_path, caplog):
         assert rotation_angle_deg(arrays["R"][p].T @ R_gt) < 1.0
         assert len(artifacts.inliers_of(arrays, p)) == arrays["n_inliers"][p]
     assert np.isfinite(arrays["R"]).all() and np.isfinite(arrays["t"]).all()
-    assert mctx.metrics["pairs_ge15_inliers"] == 3
+    assert mctx.metrics["pairs_ge_min_inliers"] == 3
     # pairs with the blank view have no raw matches: not verified, and logged as such
     assert mctx.metrics["pairs_not_verified"] == 3
     assert any("3 of 6 pairs" in r.message and "not verified" in r.message for r in caplog.records)

@@ -126,6 +126,9 @@ def test_normalise_ties_no_nan():
     assert normalise(np.array([3.0])).tolist() == [0.0]
     assert normalise(np.array([0.0, 0.0])).tolist() == [0.0, 0.0]
     assert normalise(np.array([1.0, 3.0, 2.0])).tolist() == [0.0, 1.0, 0.5]
+    assert normalise(np.array([3.0, 3.0]), tie=1.0).tolist() == [1.0, 1.0]  # S~: all equally optimisable
+    assert normalise(np.array([2.0, 5.0, 0.0]), lo_hi=(1.0, 3.0)).tolist() == [0.5, 1.0, 0.0]  # a given range, clipped
+    assert normalise(np.array([2.0]), lo_hi=(1.0, 1.0)).tolist() == [0.0]
 
 
 def test_n_anchors():
