@@ -139,8 +139,6 @@ def perturb_w2c(w2c: np.ndarray, rot_deg: tuple[float, float], centre_offset: fl
     """Poses with each camera turned by an angle drawn uniformly from ``rot_deg`` (lo, hi) about a
     random axis (in its own frame) and its centre moved by ``centre_offset`` in a random direction:
     BARF's synthetic pose noise, for experiments from a perturbed start. Returns [N,4,4]."""
-    from scipy.spatial.transform import Rotation
-
     w2c = to_4x4(w2c)
     n = len(w2c)
     axes = rng.normal(size=(n, 3))
@@ -148,7 +146,7 @@ def perturb_w2c(w2c: np.ndarray, rot_deg: tuple[float, float], centre_offset: fl
     angles = np.radians(rng.uniform(rot_deg[0], rot_deg[1], size=n))
     shifts = rng.normal(size=(n, 3))
     shifts *= centre_offset / np.linalg.norm(shifts, axis=1, keepdims=True)
-    R = Rotation.from_rotvec(axes * angles[:, None]).as_matrix() @ w2c[:, :3, :3]  # [N,3,3]
+    R = rotvec_to_matrix(axes * angles[:, None]) @ w2c[:, :3, :3]  # [N,3,3]
     C = camera_centers(w2c) + shifts  # [N,3]
     out = np.tile(np.eye(4), (n, 1, 1))
     out[:, :3, :3] = R
@@ -171,15 +169,41 @@ def intrinsics_scaled(K: np.ndarray, sx: float, sy: float | None = None) -> np.n
     return K
 
 
-# --------------------------------------------------------------------------- torch
+def pixels_to_normalised(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Pixels [M,2] -> normalised camera coordinates [M,2] (``K^-1 [u, v, 1]``, dehomogenised), with
+    one K [3,3] or one per point [M,3,3]."""
+    K = np.asarray(K, np.float64)
+    h = np.c_[np.asarray(uv, np.float64).reshape(-1, 2), np.ones(len(uv))]
+    h = np.linalg.solve(K, h.T).T if K.ndim == 2 else np.linalg.solve(K, h[..., None])[..., 0]
+    return h[:, :2] / h[:, 2:]
 
 
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    """[...,3] -> [...,3,3] cross-product matrices."""
-    zero = torch.zeros_like(v[..., 0])
-    return torch.stack(
+def project_points(K: np.ndarray, Xc: np.ndarray) -> np.ndarray:
+    """Camera-frame points [M,3] -> pixels [M,2], with one K [3,3] or one per point [M,3,3]."""
+    K = np.asarray(K, np.float64)
+    z = Xc[:, 2]
+    x, y = Xc[:, 0] / z, Xc[:, 1] / z
+    return np.stack([K[..., 0, 0] * x + K[..., 0, 1] * y + K[..., 0, 2], K[..., 1, 1] * y + K[..., 1, 2]], 1)
+
+
+def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+    """Rotation vectors [M,3] (or one [3]) -> rotation matrices [M,3,3]."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(w, np.float64).reshape(-1, 3)).as_matrix()
+
+
+def skew(v):
+    """[...,3] -> [...,3,3] cross-product matrices (``skew(a) @ b = a x b``); numpy or torch."""
+    xp = torch if isinstance(v, torch.Tensor) else np
+    v = v if xp is torch else np.asarray(v, np.float64)
+    zero = xp.zeros_like(v[..., 0])
+    return xp.stack(
         [zero, -v[..., 2], v[..., 1], v[..., 2], zero, -v[..., 0], -v[..., 1], v[..., 0], zero], -1
     ).reshape(v.shape[:-1] + (3, 3))
+
+
+# --------------------------------------------------------------------------- torch
 
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
@@ -192,7 +216,7 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     # V = I + B W + C W^2 with Taylor expansions near theta = 0
     B = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp_min(1e-12))
     C = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (theta2 * theta).clamp_min(1e-12))
-    W = _skew(omega)
+    W = skew(omega)
     eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand_as(W)
     V = eye + B * W + C * (W @ W)
     t = (V @ rho[..., None])[..., 0]
@@ -206,7 +230,7 @@ def se3_log(pose: torch.Tensor) -> torch.Tensor:
     theta2 = (omega**2).sum(-1, keepdim=True)[..., None]
     theta = theta2.clamp_min(1e-12).sqrt()
     small = theta2 < 1e-8
-    W = _skew(omega)
+    W = skew(omega)
     # V^-1 = I - W/2 + D W^2
     D = torch.where(
         small,

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from manifoldneus.cameras import _skew
+from manifoldneus.cameras import pixels_to_normalised, skew
 from manifoldneus.config import param
 
 
@@ -65,9 +65,8 @@ class MatchSet:
                 continue
             m = np.asarray(p.matches)
             for side, view, out in ((0, p.i, xa), (1, p.j, xb)):
-                uv = np.asarray(keypoints[view], np.float64)[m[:, side]]  # [m,2] px
-                h = np.concatenate([uv, np.ones((len(uv), 1))], 1) @ np.linalg.inv(K[view]).T
-                out.append(h)
+                xn = pixels_to_normalised(K[view], np.asarray(keypoints[view])[m[:, side]])
+                out.append(np.concatenate([xn, np.ones((len(xn), 1))], 1))
             va.append(np.full(len(m), local[p.i]))
             vb.append(np.full(len(m), local[p.j]))
             held.append(rng.random(len(m)) < holdout_frac)
@@ -100,7 +99,7 @@ def sampson_px(w2c: torch.Tensor, ms: MatchSet, index: torch.Tensor) -> torch.Te
     R = Rb @ Ra.transpose(-1, -2)  # camera a -> camera b
     t = tb - (R @ ta[..., None])[..., 0]
     t = t / t.norm(dim=-1, keepdim=True).clamp_min(1e-9)  # the epipolar error does not see the baseline length
-    E = _skew(t) @ R  # [M,3,3]: xb^T E xa = 0
+    E = skew(t) @ R  # [M,3,3]: xb^T E xa = 0
     xa, xb = ms.xa[index], ms.xb[index]
     Exa = (E @ xa[..., None])[..., 0]  # [M,3]
     Etxb = (E.transpose(-1, -2) @ xb[..., None])[..., 0]
@@ -120,7 +119,7 @@ class TrackSet:
     ``xn`` [O,2] normalised. Tracks with fewer than two views in the round are dropped."""
 
     def __init__(self, ids, K: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, obs_uv: np.ndarray):
-        from manifoldneus.pose_init import _normalised, _padded
+        from manifoldneus.pose_init import _padded
 
         local = np.full(max(int(np.max(ids, initial=0)), int(np.max(obs_view, initial=0))) + 1, -1)
         local[np.asarray(ids, int)] = np.arange(len(ids))
@@ -132,7 +131,7 @@ class TrackSet:
         self.view, self.track, self.uv = view[keep], track.astype(np.int64), uv[keep]
         Kv = np.asarray(K)[np.asarray(ids, int)]  # [V,3,3]
         self.K = Kv
-        self.xn = _normalised(Kv[self.view], self.uv) if len(self.view) else np.zeros((0, 2))
+        self.xn = pixels_to_normalised(Kv[self.view], self.uv) if len(self.view) else np.zeros((0, 2))
         self.n_tracks = int(track.max(initial=-1)) + 1
         self.by_track = _padded(self.track, self.n_tracks)  # [T,m] observation indices
 

@@ -42,7 +42,8 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from .cameras import camera_centers, sim3_matrix, to_4x4, transform_w2c
+from .cameras import (camera_centers, pixels_to_normalised, project_points, rotvec_to_matrix, sim3_matrix, skew, to_4x4,
+                      transform_w2c)
 from .mavos import covisibility_matrix
 
 # --------------------------------------------------------------------------- inputs
@@ -106,37 +107,7 @@ def relative_pose(p: PairMatch, a: int, b: int) -> tuple[np.ndarray, np.ndarray]
     raise ValueError(f"pair ({p.i}, {p.j}) is not ({a}, {b})")
 
 
-# --------------------------------------------------------------------------- small geometry helpers
-
-
-def _rotvec_to_mat(w: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.asarray(w, np.float64).reshape(-1, 3)).as_matrix()
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    z = np.zeros(v.shape[:-1])
-    return np.stack([z, -v[..., 2], v[..., 1], v[..., 2], z, -v[..., 0], -v[..., 1], v[..., 0], z], -1).reshape(
-        v.shape[:-1] + (3, 3))
-
-
-def _normalised(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Pixels [M,2] (with per-point K [M,3,3] or one K [3,3]) -> normalised coordinates [M,2]."""
-    K = np.asarray(K, np.float64)
-    uv = np.asarray(uv, np.float64)
-    fx, fy, cx, cy, sk = K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2], K[..., 0, 1]
-    y = (uv[:, 1] - cy) / fy
-    x = (uv[:, 0] - cx - sk * y) / fx
-    return np.stack([x, y], 1)
-
-
-def _project(K: np.ndarray, Xc: np.ndarray) -> np.ndarray:
-    """Camera-frame points [M,3] -> pixels [M,2] (K [3,3] or [M,3,3])."""
-    K = np.asarray(K, np.float64)
-    z = Xc[:, 2]
-    x, y = Xc[:, 0] / z, Xc[:, 1] / z
-    return np.stack([K[..., 0, 0] * x + K[..., 0, 1] * y + K[..., 0, 2], K[..., 1, 1] * y + K[..., 1, 2]], 1)
+# --------------------------------------------------------------------------- small helpers
 
 
 def _padded(groups: np.ndarray, n_groups: int) -> np.ndarray:
@@ -302,7 +273,7 @@ def bundle_adjust(
     def residuals(R, t, X):
         Xc = (R[cam] @ X[pt][:, :, None])[:, :, 0] + t[cam]
         with np.errstate(divide="ignore", invalid="ignore"):
-            r = _project(Ko, Xc) - uv
+            r = project_points(Ko, Xc) - uv
         return r, Xc
 
     def cost_of(r):
@@ -327,7 +298,7 @@ def bundle_adjust(
         d[:, 0, 2] = -(Ko[:, 0, 0] * Xc[:, 0] + Ko[:, 0, 1] * Xc[:, 1]) * iz * iz
         d[:, 1, 1] = Ko[:, 1, 1] * iz
         d[:, 1, 2] = -Ko[:, 1, 1] * Xc[:, 1] * iz * iz
-        Jc = np.concatenate([d @ -_skew(Xc - t[cam]), d], 2)  # [O,2,6]: d Xc / d(dw, dt) = [-[R X]x, I]
+        Jc = np.concatenate([d @ -skew(Xc - t[cam]), d], 2)  # [O,2,6]: d Xc / d(dw, dt) = [-[R X]x, I]
         Jp = d @ R[cam]  # [O,2,3]
         wJcT = (Jc * w[:, None, None]).transpose(0, 2, 1)  # [O,6,2]
         wJpT = (Jp * w[:, None, None]).transpose(0, 2, 1)  # [O,3,2]
@@ -351,7 +322,7 @@ def bundle_adjust(
                 dx[fidx] = _solve_spd(S[np.ix_(fidx, fidx)], rhs[fidx])
             dc = dx.reshape(V, 6)
             dp = (Vinv @ (gp - (Wm.T @ dx).reshape(P, 3))[:, :, None])[:, :, 0]
-            R_new = _rotvec_to_mat(dc[:, :3]) @ R
+            R_new = rotvec_to_matrix(dc[:, :3]) @ R
             t_new = t + dc[:, 3:]
             X_new = X + dp
             r_new, Xc_new = residuals(R_new, t_new, X_new)
@@ -491,7 +462,7 @@ class _Recon:
     def _finish_tracks(self):
         O = len(self.obs_view)
         self.obs_active = np.ones(O, bool)
-        self.obs_xn = _normalised(self.K[self.obs_view], self.obs_uv) if O else np.zeros((0, 2))
+        self.obs_xn = pixels_to_normalised(self.K[self.obs_view], self.obs_uv) if O else np.zeros((0, 2))
         self.X = np.full((self.n_tracks, 3), np.nan)
         self.has_point = np.zeros(self.n_tracks, bool)
 
@@ -504,7 +475,7 @@ class _Recon:
         v = self.obs_view[obs]
         Xc = np.einsum("oij,oj->oi", R[v], X[self.obs_track[obs]]) + t[v]
         with np.errstate(divide="ignore", invalid="ignore"):
-            e = np.linalg.norm(_project(self.K[v], Xc) - self.obs_uv[obs], axis=1)
+            e = np.linalg.norm(project_points(self.K[v], Xc) - self.obs_uv[obs], axis=1)
         return np.where(np.isfinite(e), e, np.inf), Xc[:, 2]
 
     def correspondences(self, v: int) -> np.ndarray:
@@ -517,7 +488,7 @@ class _Recon:
             return 0
         Xc = self.X[self.obs_track[obs]] @ R.T + t
         with np.errstate(divide="ignore", invalid="ignore"):
-            e = np.linalg.norm(_project(self.K[v], Xc) - self.obs_uv[obs], axis=1)
+            e = np.linalg.norm(project_points(self.K[v], Xc) - self.obs_uv[obs], axis=1)
         return int(((e < self.thr) & (Xc[:, 2] > 0)).sum())
 
     # -- placement candidates
@@ -973,7 +944,7 @@ def lift_points(
     """Back-project pixels uv [M,2] of a view with depth [M] to world points [M,3].
     depth is the z-depth (along the optical axis) unless ``ray_distance`` (distance along the
     unit ray from the camera centre). Non-positive / non-finite depths give NaN points."""
-    xn = _normalised(K, uv)
+    xn = pixels_to_normalised(K, uv)
     d = np.concatenate([xn, np.ones((len(xn), 1))], 1)
     depth = np.asarray(depth, np.float64).reshape(-1)
     if ray_distance:
@@ -1033,7 +1004,7 @@ def place_by_pnp(
     t = tvec.ravel()
     Xc = X @ R.T + t
     with np.errstate(divide="ignore", invalid="ignore"):
-        e = np.linalg.norm(_project(K, Xc) - uv, axis=1)
+        e = np.linalg.norm(project_points(K, Xc) - uv, axis=1)
     good = (e < reproj_px) & (Xc[:, 2] > 0)
     n = int(good.sum())
     if refine and n >= 6:  # one more refinement on the final inlier set
@@ -1042,7 +1013,7 @@ def place_by_pnp(
             R, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
             Xc = X @ R.T + t
             with np.errstate(divide="ignore", invalid="ignore"):
-                e = np.linalg.norm(_project(K, Xc) - uv, axis=1)
+                e = np.linalg.norm(project_points(K, Xc) - uv, axis=1)
             n = int(((e < reproj_px) & (Xc[:, 2] > 0)).sum())
         except cv2.error:
             pass

@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from manifoldneus.cameras import pixels_to_normalised
 from manifoldneus.config import param
 from manifoldneus.io import load_arrays, load_attrs, load_json, save_arrays
 
@@ -187,13 +188,6 @@ def ransac_iterations(n: int, min_inliers: int, confidence: float, max_iters: in
     return int(min(max(k, 1), max_iters))
 
 
-def _normalize(x: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Pixels [M,2] -> normalised image coordinates K^-1 [x, 1] (first two components)."""
-    x = np.asarray(x, np.float64)
-    h = np.linalg.solve(np.asarray(K, np.float64), np.c_[x, np.ones(len(x))].T).T
-    return h[:, :2] / h[:, 2:]
-
-
 def verify_pair(
     x1: np.ndarray,
     x2: np.ndarray,
@@ -219,7 +213,7 @@ def verify_pair(
     if K1 is not None and K2 is not None:
         if m < 5:
             return out
-        n1, n2 = _normalize(x1, K1), _normalize(x2, K2)
+        n1, n2 = pixels_to_normalised(K1, x1), pixels_to_normalised(K2, x2)
         f = float(np.mean([K1[0, 0], K1[1, 1], K2[0, 0], K2[1, 1]]))
         E, mask = cv2.findEssentialMat(
             n1, n2, cameraMatrix=np.eye(3), method=flag, prob=confidence, threshold=threshold_px / f, maxIters=max_iters

@@ -25,7 +25,7 @@ def test_se3_exp_is_a_rigid_motion_and_matches_matrix_exponential():
     assert torch.allclose(torch.linalg.det(R), torch.ones(16, dtype=torch.float64))
     # against the matrix exponential of the 4x4 twist
     twist = torch.zeros(16, 4, 4, dtype=torch.float64)
-    twist[:, :3, :3] = cameras._skew(xi[:, 3:])
+    twist[:, :3, :3] = cameras.skew(xi[:, 3:])
     twist[:, :3, 3] = xi[:, :3]
     torch.testing.assert_close(torch.linalg.matrix_exp(twist)[:, :3, :4], T, atol=1e-10, rtol=1e-9)
 
@@ -94,3 +94,32 @@ def test_perturbed_poses_turn_and_move_by_the_asked_amounts():
     np.testing.assert_allclose(shift, 0.15, atol=1e-9)
     np.testing.assert_allclose(out[:, :3, :3] @ np.swapaxes(out[:, :3, :3], 1, 2), np.tile(np.eye(3), (20, 1, 1)),
                                atol=1e-12)
+
+
+def test_projection_and_normalised_coordinates_are_inverse():
+    rng = np.random.default_rng(0)
+    K = np.array([[900.0, 2.5, 190.3], [0, 905.0, 200.7], [0, 0, 1]])  # with skew
+    Xc = np.c_[rng.uniform(-1, 1, (50, 2)), rng.uniform(2, 5, 50)]
+    uv = cameras.project_points(K, Xc)
+    h = Xc @ K.T
+    np.testing.assert_allclose(uv, h[:, :2] / h[:, 2:], rtol=1e-12)
+    np.testing.assert_allclose(cameras.pixels_to_normalised(K, uv), Xc[:, :2] / Xc[:, 2:], atol=1e-12)
+    Ks = K * rng.uniform(0.5, 2.0, (50, 1, 1))  # one K per point
+    Ks[:, 2, 2] = 1.0
+    uv = cameras.project_points(Ks, Xc)
+    np.testing.assert_allclose(cameras.pixels_to_normalised(Ks, uv), Xc[:, :2] / Xc[:, 2:], atol=1e-12)
+    h = np.linalg.solve(Ks, np.c_[uv, np.ones(50)][..., None])[..., 0]  # K^-1 [u, v, 1]
+    np.testing.assert_allclose(cameras.pixels_to_normalised(Ks, uv), h[:, :2], atol=1e-12)
+
+
+def test_skew_and_rotvec_numpy_and_torch():
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
+    np.testing.assert_allclose(cameras.skew(a) @ b[..., None], np.cross(a, b)[..., None], atol=1e-12)
+    np.testing.assert_array_equal(cameras.skew(torch.from_numpy(a)).numpy(), cameras.skew(a))
+    w = rng.normal(size=(7, 3))
+    R = cameras.rotvec_to_matrix(w)
+    assert R.shape == (7, 3, 3)
+    np.testing.assert_allclose(R, torch.linalg.matrix_exp(torch.from_numpy(cameras.skew(w))).numpy(), atol=1e-12)
+    np.testing.assert_allclose(cameras.rotvec_to_matrix(np.array([0.0, 0.0, np.pi / 2]))[0] @ [1.0, 0, 0], [0, 1.0, 0],
+                               atol=1e-15)

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from manifoldneus import pose_init as PI
-from manifoldneus.cameras import camera_centers, look_at_w2c, rotation_angle_deg, transform_w2c
+from manifoldneus.cameras import (camera_centers, look_at_w2c, pixels_to_normalised, project_points, rotation_angle_deg,
+                                  transform_w2c)
 from manifoldneus.pose_metrics import evaluate_poses
 
 N_VIEWS, RES = 20, 192
@@ -77,7 +78,7 @@ def test_lift_points_roundtrip():
     K, w2c = intrinsics(100, 100), camera_poses(3)[1]
     X = np.array([[0.1, 0.2, 0.0], [-0.3, 0.1, 0.2]])
     Xc = X @ w2c[:3, :3].T + w2c[:3, 3]
-    uv = PI._project(K, Xc)
+    uv = project_points(K, Xc)
     assert np.allclose(PI.lift_points(K, w2c, uv, Xc[:, 2]), X)
     assert np.allclose(PI.lift_points(K, w2c, uv, np.linalg.norm(Xc, axis=1), ray_distance=True), X)
     assert np.isnan(PI.lift_points(K, w2c, uv, np.array([np.nan, -1.0]))).all()
@@ -93,9 +94,9 @@ def test_triangulate_and_bundle_adjust_exact():
     cam = np.repeat(np.arange(8), 300)
     pt = np.tile(np.arange(300), 8)
     Xc = np.einsum("oij,oj->oi", w2c[cam, :3, :3], X[pt]) + w2c[cam, :3, 3]
-    uv = PI._project(K[cam], Xc)
+    uv = project_points(K[cam], Xc)
     # DLT recovers the points exactly
-    xn = PI._normalised(K[cam], uv)
+    xn = pixels_to_normalised(K[cam], uv)
     idx = PI._padded(pt, 300)
     Xt = PI.triangulate_multiview(w2c[cam, :3, :3], w2c[cam, :3, 3], xn, idx)
     assert np.abs(Xt - X).max() < 1e-8
