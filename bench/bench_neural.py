@@ -7,7 +7,7 @@ memory (max RSS) and wall time. Prints a table and writes JSON.
     .venv/bin/python bench/bench_neural.py --field grid --budget 420 --out /tmp/bench_neural.json
     .venv/bin/python bench/bench_neural.py --throughput-only      # rays/s of both fields
 
-The scan24 loader here is temporary: the pipeline's ingest artifact (docs/STAGES.md) replaces it.
+The scene is read by manifoldneus.scenes (the ingest and ground_truth stages' readers).
 """
 from __future__ import annotations
 
@@ -30,55 +30,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from manifoldneus.cameras import decompose_projection  # noqa: E402
 from manifoldneus.field import FieldParams  # noqa: E402
 from manifoldneus.losses import LossParams  # noqa: E402
 from manifoldneus.metrics import psnr, ssim  # noqa: E402
 from manifoldneus.render import RenderParams  # noqa: E402
+from manifoldneus.scenes import read_ground_truth, read_views, resolve_scene  # noqa: E402
 from manifoldneus.train import TrainParams, Trainer, TrainRun, Views  # noqa: E402
+from stages.ingest import Params as IngestParams  # noqa: E402
 
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "dtu" / "scan24"
-
-
-def load_scan24(root: Path, crop_x: float = 200.0, size: int = 384) -> Views:
-    """MonoSDF-layout DTU scan (see the data README): intrinsics from world_mat after the centre
-    crop / resize, poses in the frame normalised by scale_mat (object inside the unit sphere)."""
-    import cv2
-
-    root = Path(root)
-    if not (root / "cameras.npz").is_file():
-        raise FileNotFoundError(f"no scan at {root} (expected cameras.npz and NNNNNN_rgb.png); pass --data")
-    cams = np.load(root / "cameras.npz")
-    names = sorted(p.name[:6] for p in root.glob("*_rgb.png"))
-    imgs, masks, depth, normal, Ks, w2cs = [], [], [], [], [], []
-    for i, n in enumerate(names):
-        P = (cams[f"world_mat_{i}"] @ cams[f"scale_mat_{i}"])[:3, :4]
-        K, w2c = decompose_projection(P)
-        K[0, 2] -= crop_x
-        K[:2] *= size / 1200.0
-        Ks.append(K)
-        w2cs.append(w2c)
-        imgs.append(cv2.imread(str(root / f"{n}_rgb.png"))[..., ::-1])
-        mp = root / f"{n}_mask.png"
-        if mp.is_file():
-            masks.append(cv2.imread(str(mp))[..., 0] > 127)
-        dp = root / f"{n}_depth.npy"
-        if dp.is_file():
-            depth.append(np.load(dp).astype(np.float32))
-        npth = root / f"{n}_normal.npy"
-        if npth.is_file():
-            nn_ = np.load(npth).astype(np.float32).transpose(1, 2, 0) * 2.0 - 1.0
-            normal.append(nn_ / np.linalg.norm(nn_, axis=-1, keepdims=True).clip(1e-8))
-    full = len(names)
-    return Views(
-        images=np.stack(imgs),
-        K=np.stack(Ks),
-        w2c=np.stack(w2cs),
-        masks=np.stack(masks) if len(masks) == full else None,
-        mono_depth=np.stack(depth) if len(depth) == full else None,
-        mono_normal=np.stack(normal) if len(normal) == full else None,
-        names=names,
-    )
+def load_scene(data: str) -> Views:
+    """The scene's views as the ingest stage reads them (default ingest params) with its ground-truth poses."""
+    ref = resolve_scene(data)
+    p = IngestParams()
+    views, gt = read_views(ref, p), read_ground_truth(ref, p)
+    if gt is None:
+        raise SystemExit(f"{data}: no ground-truth poses; this benchmark trains with them (pass --data)")
+    return Views(views["images"], views["K"], gt["w2c"], views.get("masks"), views.get("mono_depth"),
+                 views.get("mono_normal"), views["names"])
 
 
 def cpu_s() -> float:
@@ -166,7 +134,7 @@ def throughput(views: Views, args, kinds=("grid", "mlp"), n_iter: int = 10) -> d
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    ap.add_argument("--data", default="scan24", help="a scene name under the data root, or a folder")
     ap.add_argument("--field", default="grid", choices=["grid", "mlp"])
     ap.add_argument("--size", type=int, default=192, help="training / evaluation image size (longest side)")
     ap.add_argument("--budget", type=float, default=420.0, help="training wall-clock budget in seconds")
@@ -207,7 +175,7 @@ def main():
     args = ap.parse_args()
 
     t_start = time.time()
-    views = load_scan24(args.data)
+    views = load_scene(args.data)
     if args.no_masks:
         views.masks = None
     if args.no_priors:

@@ -1,5 +1,5 @@
 """Evaluation helpers shared by `reference_surface`, `mesh` and `evaluate`: restoring a trained
-model, meshing it, novel-view metrics on held-out views, and the COLMAP text export."""
+model, meshing it, novel-view metrics on held-out views."""
 from __future__ import annotations
 
 import dataclasses
@@ -94,28 +94,6 @@ def novel_views(trainer: Trainer, views: Views, ids, w2c: np.ndarray, out_dir: P
     summary["lpips_status"] = "on" if ok else why
     summary["resolution"] = [trainer.H, trainer.W]
     return {"summary": summary, "per_view": rows}
-
-
-def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None) -> None:
-    """COLMAP text model (PINHOLE camera per view, poses world-to-camera; no 3D points)."""
-    from scipy.spatial.transform import Rotation
-
-    folder.mkdir(parents=True, exist_ok=True)
-    valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
-    cams = ["# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
-    imgs = ["# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "# POINTS2D[] (empty)"]
-    for i, name in enumerate(names):
-        if not valid[i]:
-            continue
-        k = K[i]
-        cams.append(f"{i + 1} PINHOLE {width} {height} {k[0, 0]:.9g} {k[1, 1]:.9g} {k[0, 2]:.9g} {k[1, 2]:.9g}")
-        x, y, z, w = Rotation.from_matrix(w2c[i][:3, :3]).as_quat()
-        t = w2c[i][:3, 3]
-        imgs.append(f"{i + 1} {w:.12g} {x:.12g} {y:.12g} {z:.12g} {t[0]:.12g} {t[1]:.12g} {t[2]:.12g} {i + 1} {name}.png")
-        imgs.append("")
-    (folder / "cameras.txt").write_text("\n".join(cams) + "\n")
-    (folder / "images.txt").write_text("\n".join(imgs) + "\n")
-    (folder / "points3D.txt").write_text("# no points: poses only\n")
 
 
 def gt_in_model_frame(alignment: dict, w2c_gt: np.ndarray) -> np.ndarray:

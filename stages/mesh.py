@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from manifoldneus import artifacts, evaluation, io, posefree
+from manifoldneus import artifacts, evaluation, export, io, posefree
 
 Params = evaluation.MeshParams
 UPSTREAM = ("ingest", "successors")
@@ -30,5 +30,5 @@ def run(ctx) -> None:
     evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params, w2c=w2c[ids])
     io.save_arrays(ctx.out / "poses.zarr", {"w2c": w2c, "placed": placed}, chunk_first=False)
     h, w = views.images.shape[1:3]
-    evaluation.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c, w, h, valid=placed)
+    export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c, w, h, valid=placed)
     ctx.metrics.update(faces=int(len(mesh.faces)), vertices=int(len(mesh.vertices)), views_exported=int(placed.sum()))
