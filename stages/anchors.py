@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import io, pose_init, posefree
+from manifoldneus import io, mavos, pose_init, posefree
 from manifoldneus.config import ParamError, param
 
 
@@ -34,6 +34,11 @@ class Params:
     correspondence_weight: float = param(1.0, "Weight of the correspondence term (section `correspondence`) in the "
                                          "anchors' pose loss; 0 = photometric poses only (docs/REFINEMENT.md)", lo=0.0)
     reproj_px: float = param(3.0, "matches init: inlier reprojection threshold (px)", lo=0.1)
+    bridge_min_matches: int = param(50, "matches init: when the anchors' own co-visibility graph is disconnected or "
+                                    "its weakest spanning link has fewer verified matches than this, the "
+                                    "initialisation also uses the training views that bridge them along the "
+                                    "maximum spanning tree of all training views (their poses are not kept); "
+                                    "0 = the anchors' own matches only", lo=0)
     gauge_radius: float = param(0.8, "Robust radius the anchors' points are scaled to (object in the unit sphere)",
                                 lo=0.1, hi=1.0)
     identity_distance: float = param(3.0, "identity init: distance of the canonical camera from the origin", lo=0.5)
@@ -86,16 +91,53 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
                 nb = [j for j in np.argsort(-inputs.W[a]) if registered[j]]
                 w2c[a] = ref[nb[0]] if nb else np.eye(4)
         return w2c, {"method": "reference", "unregistered": missing}
-    masks = None if inputs.views.masks is None else [inputs.views.masks[a] for a in anchors]
-    res = pose_init.init_from_matches(anchors, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
+    ids = init_views(anchors, inputs.W, np.flatnonzero(inputs.train_mask), p.bridge_min_matches)
+    bridges = sorted(set(ids) - set(anchors))
+    if bridges:
+        ctx.log.info("the anchors' own matches link them weakly (weakest spanning link %g < %d matches): their "
+                     "initialisation also uses views %s, which bridge them", mavos.bottleneck_weight(inputs.W, anchors),
+                     p.bridge_min_matches, [inputs.names[v] for v in bridges])
+    masks = None if inputs.views.masks is None else [inputs.views.masks[v] for v in ids]
+    res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
                                       reproj_px=p.reproj_px, gauge_radius=p.gauge_radius, masks=masks,
                                       log=ctx.log.info)
-    if res.unplaced:
+    unplaced = [v for v in res.unplaced if v in set(anchors)]
+    if unplaced:
         ctx.log.warning("initialisation could not place anchors %s; they start at a neighbour's pose",
-                        [inputs.names[v] for v in res.unplaced])
-    w2c[anchors] = res.w2c
-    return w2c, {"method": "matches", "per_view": dict(zip(map(int, anchors), res.method)),
-                 "unplaced": [inputs.names[v] for v in res.unplaced], **res.diagnostics}
+                        [inputs.names[v] for v in unplaced])
+    row = {v: k for k, v in enumerate(ids)}
+    w2c[anchors] = res.w2c[[row[a] for a in anchors]]
+    return w2c, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
+                 "bridges": [int(v) for v in bridges], "unplaced": [inputs.names[v] for v in unplaced],
+                 **res.diagnostics}
+
+
+def init_views(anchors: list[int], W: np.ndarray, trainable, min_matches: int) -> list[int]:
+    """The views whose matches initialise the anchors: the anchors alone when their own graph's
+    weakest spanning link has at least ``min_matches`` verified matches; else the anchors and the
+    trainable views on the maximum spanning tree of all trainable views that connects them
+    (its smallest subtree holding every anchor reachable from the first)."""
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+
+    if min_matches <= 0 or len(anchors) < 2 or mavos.bottleneck_weight(W, anchors) >= min_matches:
+        return list(anchors)
+    ids = np.union1d(np.asarray(trainable, int), anchors)
+    tree = -minimum_spanning_tree(-W[np.ix_(ids, ids)]).toarray()  # the strongest links that span them
+    tree = (tree + tree.T) > 0
+    keep = np.isin(ids, anchors)
+    degree = tree.sum(1)
+    leaves = [i for i in range(len(ids)) if degree[i] == 1 and not keep[i]]
+    while leaves:  # prune branches that lead to no anchor
+        i = leaves.pop()
+        degree[i] = 0
+        for j in np.flatnonzero(tree[i]):
+            tree[i, j] = tree[j, i] = False
+            degree[j] -= 1
+            if degree[j] == 1 and not keep[j]:
+                leaves.append(j)
+    first = int(np.flatnonzero(keep)[0])
+    reached = breadth_first_order(tree, first, directed=False, return_predecessors=False)
+    return sorted(set(int(ids[i]) for i in reached) | set(map(int, anchors)))
 
 
 def perturbed(w2c: np.ndarray, p: Params, seed: int) -> np.ndarray:

@@ -283,3 +283,20 @@ def test_fallback_neighbour_pose(scene_matches):
     far = {v: s.w2c[v] for v in range(N_VIEWS) if W[view, v] == 0 and v != view}
     w2c_u, info_u = PI.place_successor(view, s.K, kps, pairs, far, W, depth_at=_depth_sampler(s.depth))
     assert w2c_u is None and info_u["method"] == "unplaced"
+
+
+def test_weakly_linked_anchors_are_initialised_with_the_views_that_bridge_them():
+    from stages.anchors import init_views
+
+    # anchors {0, 1} and {4, 5}: no edge between the two pairs; views 2-3 bridge them strongly,
+    # view 6 hangs off view 2 (on the spanning tree but on no anchor-to-anchor path), 7 is held out
+    W = np.zeros((8, 8))
+    for a, b, w in ((0, 1, 300), (4, 5, 300), (1, 2, 200), (2, 3, 200), (3, 4, 200), (2, 6, 250), (0, 7, 400),
+                    (7, 5, 400)):
+        W[a, b] = W[b, a] = w
+    trainable = [0, 1, 2, 3, 4, 5, 6]
+    assert init_views([0, 1, 4, 5], W, trainable, min_matches=50) == [0, 1, 2, 3, 4, 5]
+    assert init_views([0, 1, 4, 5], W, trainable, min_matches=0) == [0, 1, 4, 5]  # off
+    W[1, 4] = W[4, 1] = 20  # linked now, but by 20 matches: still bridged by the strong path
+    assert init_views([0, 1, 4, 5], W, trainable, min_matches=50) == [0, 1, 2, 3, 4, 5]
+    assert init_views([0, 1, 4, 5], W, trainable, min_matches=10) == [0, 1, 4, 5]  # strong enough

