@@ -457,6 +457,7 @@ class Context:
         self._store = store
         self._upstream = upstream_fps
         self.out = out
+        self.log_path = out / LOG  # where native libraries' output goes too (io.native_output_to)
         self.scene = scene.name
         self.scene_ref = scene
         self.log = log
@@ -645,6 +646,43 @@ def run(
 
 
 # ---------------------------------------------------------------------------- inspection
+
+
+def run_summary(scene_name: str, report: dict[str, str], artifacts=DEFAULT_ARTIFACTS, data_root=None,
+                preset=None) -> str:
+    """What a run did and where its results are: per stage ran / cached and its time, the final
+    poses' and held-out views' scores where the scene has ground truth, and the paths to open."""
+    store = Store(artifacts, resolve_scene(scene_name, data_root).name, preset)
+    lines, total = [], 0.0
+    for name, how in report.items():
+        m = store.manifest(name) or {}
+        seconds = m.get("wall_seconds", 0.0) if how == "computed" else 0.0
+        total += seconds
+        lines.append(f"  {name:<18} {'ran' if how == 'computed' else 'cached':<7}"
+                     + (f"{seconds:8.1f} s" if how == "computed" else ""))
+    ran = sum(how == "computed" for how in report.values())
+    out = [f"{store.scene_dir.name}: {len(report)} stages, {ran} ran ({total:.0f} s), {len(report) - ran} cached", *lines]
+    if "evaluate" in report and store.current("evaluate"):
+        ev = json.loads((store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json").read_text())
+        if ev.get("poses"):
+            final = ev["poses"][-1]
+            rot, centre = final["summary"]["rot_err_deg"], final["summary"].get("center_err_units", {})
+            units = ev.get("geometry", {}).get("units", "")
+            out.append(f"poses ({final['label']}, {final['n_views']} views, against ground truth after a Sim3): "
+                       f"rotation {rot['mean']:.3f} deg mean, {rot['median']:.3f} median; centre "
+                       f"{centre.get('mean', float('nan')):.3g} {units}".rstrip())
+        nvs = ev.get("novel_views", {}).get("summary", {})
+        if nvs.get("psnr_masked") is not None:
+            out.append(f"held-out views: masked PSNR {nvs['psnr_masked']:.2f} dB, SSIM {nvs.get('ssim_masked', 0):.3f}")
+        geo = ev.get("geometry", {})
+        if geo.get("chamfer_units") is not None:
+            out.append(f"surface: Chamfer {geo['chamfer_units']:.3g} {geo.get('units', '')} to {geo.get('reference', 'the reference')}")
+    if "mesh" in report and store.current("mesh"):
+        mesh_dir = store.version_dir("mesh", store.current("mesh"))
+        out += [f"mesh:    {mesh_dir / 'mesh.ply'}", f"cameras: {mesh_dir / 'colmap'} (COLMAP text model)"]
+    if "evaluate" in report:
+        out.append(f"report:  make report SCENE={scene_name}")
+    return "\n".join(out)
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:
@@ -869,8 +907,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _command(args) -> int:
     if args.command == "run":
-        run(args.scene, args.until, args.only, args.overrides, args.force, args.profile, args.preset,
-            args.artifacts, args.params, args.data_root)
+        report = run(args.scene, args.until, args.only, args.overrides, args.force, args.profile, args.preset,
+                     args.artifacts, args.params, args.data_root)
+        print(run_summary(args.scene, report, args.artifacts, args.data_root, args.preset))
     elif args.command == "status":
         for name, (state, reasons) in status(args.scene, args.overrides, args.profile, args.preset,
                                              args.artifacts, args.params, args.data_root).items():

@@ -1,7 +1,10 @@
 """Artifact I/O: arrays to zarr (v3), metadata to JSON, meshes to PLY, images to PNG."""
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -118,3 +121,25 @@ def save_figure(path: Path, fig) -> None:
 
     fig.savefig(str(path), dpi=110, bbox_inches="tight")
     plt.close(fig)
+
+
+@contextlib.contextmanager
+def native_output_to(path: Path):
+    """Send what native libraries write to the process's stdout and stderr (pycolmap's glog lines)
+    to the end of ``path`` for the duration, then restore both. Python's own writes are flushed
+    first so nothing is reordered across the switch."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with open(path, "ab") as target:
+        try:
+            os.dup2(target.fileno(), 1)
+            os.dup2(target.fileno(), 2)
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)

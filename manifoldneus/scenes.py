@@ -27,7 +27,7 @@ import numpy as np
 from manifoldneus import cameras, io
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".tif", ".tiff", ".bmp")
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # compared lower-case: .JPG, .Jpeg too
 HOW_TO_GET_DTU = (
     "DTU scan24 ships in ../shared/data/dtu/scan24 (MonoSDF layout) and ../shared/data/dtu/scan24_idr "
     "(IDR layout) beside the project; elsewhere, download the MonoSDF or NeuS preprocessed DTU release and "
@@ -120,7 +120,7 @@ def _list_images(folder: Path) -> list[Path]:
         return []
     # hidden files (macOS AppleDouble `._x.png`, `.DS_Store`) are not photos
     return sorted(p for p in folder.iterdir()
-                  if p.suffix in IMAGE_EXTENSIONS and p.is_file() and not p.name.startswith("."))
+                  if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file() and not p.name.startswith("."))
 
 
 def _read_mask(path: Path) -> np.ndarray:

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus.config import param
-from manifoldneus.io import load_arrays, load_json, save_arrays
+from manifoldneus.io import load_arrays, load_json, native_output_to, save_arrays
 
 
 @dataclass
@@ -208,10 +208,12 @@ def run(ctx) -> None:
         image_dir.mkdir()
         for f, im in zip(files, arrays["images"]):
             save_png(image_dir / f, im)
-        res = run_colmap(
-            image_dir, files, arrays["K"].astype(np.float64), tmp, intrinsics=p.intrinsics, max_features=p.max_features,
-            num_threads=p.num_threads, seed=p.seed, min_num_matches=p.min_num_matches, log=ctx.log,
-        )
+        with native_output_to(ctx.log_path):  # COLMAP's own log (hundreds of lines) goes to log.txt
+            res = run_colmap(
+                image_dir, files, arrays["K"].astype(np.float64), tmp, intrinsics=p.intrinsics,
+                max_features=p.max_features, num_threads=p.num_threads, seed=p.seed,
+                min_num_matches=p.min_num_matches, log=ctx.log,
+            )
         sparse = Path(ctx.out) / "sparse"
         sparse.mkdir()
         if res["reconstruction"] is not None:

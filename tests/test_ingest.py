@@ -196,6 +196,7 @@ def test_exif_orientation_leaves_pixels_and_principal_point_consistent(tmp_path)
 def test_hidden_files_are_not_photos(plain_folder):
     (plain_folder / "._IMG_0001.png").write_bytes(b"\x00\x05\x16\x07AppleDouble")  # macOS resource fork
     (plain_folder / ".DS_Store").write_bytes(b"\x00")
+    (plain_folder / "IMG_0005.png").rename(plain_folder / "IMG_0005.Png")  # mixed-case extensions are photos
     v = views_of(plain_folder)
     assert len(v["names"]) == 6 and not any(n.startswith(".") for n in v["names"])
 

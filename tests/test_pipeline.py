@@ -370,3 +370,18 @@ def test_every_expected_failure_is_one_line(artifacts, capsys, monkeypatch):
     monkeypatch.setattr(pipeline.Store, "lock", read_only)
     assert pipeline.main(args) == 2
     assert "error: no permission to write" in capsys.readouterr().err
+
+
+def test_a_run_ends_with_a_summary_and_colmap_logs_only_to_log_txt(artifacts, capfd):
+    args = ["run", "--scene", "synthetic", "--artifacts", str(artifacts), *sum((["--set", s] for s in FAST_SYNTH), [])]
+    assert pipeline.main([*args, "--until", "ground_truth"]) == 0
+    out, _ = capfd.readouterr()
+    assert "synthetic: 2 stages, 2 ran" in out and "  ingest             ran" in out
+    assert pipeline.main([*args, "--only", "reference"]) == 0  # pycolmap (its upstream is ingest alone)
+    out, err = capfd.readouterr()
+    store = pipeline.Store(artifacts, "synthetic")
+    log = (store.version_dir("reference", store.current("reference")) / "log.txt").read_text()
+    assert "feature_extraction" in log  # COLMAP's own lines, in the stage's log...
+    assert "feature_extraction" not in err + out  # ...not on the console
+    assert pipeline.main([*args, "--until", "ground_truth"]) == 0
+    assert "synthetic: 2 stages, 0 ran (0 s), 2 cached" in capfd.readouterr().out
