@@ -78,6 +78,7 @@ class FakeCtx:
         self._inputs = inputs
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
+        self.log_path = self.out / "log.txt"
         self.scene = scene
         self.log = logging.getLogger(f"manifoldneus.test.{module.__name__}")
         self.metrics: dict = {}
