@@ -29,11 +29,9 @@ from __future__ import annotations
 import argparse
 import ast
 import contextlib
-import dataclasses
 import fcntl
 import hashlib
 import importlib
-import inspect
 import json
 import logging
 import os
@@ -156,10 +154,9 @@ def resolve_params(
     presets = raw.pop("presets", {}) or {}
     profile = profile or raw.pop("profile", "fast")
     raw.pop("profile", None)
-    for section in raw:
+    for section, values in raw.items():
         if section not in classes:
             raise ParamError(f"{params_path}: unknown section {section!r} (known: {', '.join(sorted(classes))})")
-    for section, values in raw.items():
         _expect_mapping(values, f"{params_path}: section {section!r}")
     if not profiles:
         raise ParamError(f"{params_path} defines no `profiles` (the project's {DEFAULT_PARAMS} has fast and paper)")
@@ -169,7 +166,7 @@ def resolve_params(
         raise ParamError(f"unknown preset {preset!r} (params.yaml defines: {', '.join(sorted(presets))})")
     merged = {s: dict(raw.get(s) or {}) for s in classes}
     for layer_name, layer in (("profile " + profile, profiles[profile]), ("preset " + str(preset), presets.get(preset))):
-        _expect_mapping(layer or {}, f"{params_path}: {layer_name}")
+        _expect_mapping(layer, f"{params_path}: {layer_name}")
         for section, values in (layer or {}).items():
             if section not in classes:
                 raise ParamError(f"{layer_name}: unknown section {section!r}")
@@ -362,10 +359,11 @@ class Store:
         os.replace(tmp, self.stage_dir(stage) / self.pointer)
 
     def content(self, stage: str, fingerprint: str) -> str | None:
-        """The content digest of a complete version (None: absent, or written before digests)."""
-        if not self.is_complete(stage, fingerprint):
+        """The content digest of a complete version (None: absent, unreadable, or written before digests)."""
+        try:
+            return json.loads((self.version_dir(stage, fingerprint) / MANIFEST).read_text()).get("content")
+        except (OSError, ValueError):
             return None
-        return self.manifest(stage, fingerprint).get("content")
 
     def damage(self, stage: str, fingerprint: str, deep: bool = False) -> list[str]:
         """What is wrong with a version's files against its manifest: missing files and wrong sizes
@@ -617,6 +615,13 @@ def run(
     own = own_ingredients(stages, resolved, scene)
     selected = select(stages, until, only)
     report: dict[str, str] = {}
+    intact: set[tuple[str, str]] = set()  # versions whose files were checked in this run
+
+    def refuse_damaged(stage: str, fingerprint: str) -> None:
+        if (stage, fingerprint) not in intact:
+            _refuse_damaged(store, stage, fingerprint, scene_name)
+            intact.add((stage, fingerprint))
+
     with store.lock():
         for name in selected:
             stage = stages[name]
@@ -628,9 +633,9 @@ def run(
                         f"stage {name} needs {up} with the current parameters, which has not been computed; "
                         f"run: python pipeline.py run --scene {scene_name} --until {name}"
                     )
-                _refuse_damaged(store, up, fps[up]["fingerprint"], scene_name)
+                refuse_damaged(up, fps[up]["fingerprint"])
             if store.is_complete(name, fp) and name not in force:
-                _refuse_damaged(store, name, fp, scene_name)
+                refuse_damaged(name, fp)
                 store.set_current(name, fp)
                 report[name] = "reused"
                 print(f"[{name}] up to date ({fp})", file=sys.stderr)

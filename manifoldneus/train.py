@@ -458,14 +458,16 @@ class Trainer:
                           band_weights=bw, perturb=True, train=True, want_normals=True)
         total, terms, status = compute_losses(out, b, self.lp)
         field_loss = float(total.detach())  # what the divergence check watches (the pose term jumps by design)
+        lv = field_loss
         if self.pose_loss is not None and self.cams.active(self.step):
             extra = self.pose_loss(self.poses(), self.rng, self.step)
             if extra is not None:
                 terms["corr"] = float(extra.detach())
                 total = total + self.pose_loss.weight * extra
+                lv = field_loss + self.pose_loss.weight * terms["corr"]  # no second device sync
         if inject_nan:
             total = total * float("nan")
-        lv = float(total.detach())
+            lv = float("nan")
         self.loss_status = status
         if not math.isfinite(lv):
             self._rollback("non-finite loss")

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus.config import param
-from manifoldneus.io import load_arrays, load_attrs, load_json, save_arrays
+from manifoldneus.io import load_arrays, load_json, save_arrays
 
 
 @dataclass

@@ -49,7 +49,7 @@ import numpy as np
 
 from manifoldneus.cameras import pixels_to_normalised
 from manifoldneus.config import param
-from manifoldneus.io import load_arrays, load_attrs, load_json, save_arrays
+from manifoldneus.io import load_arrays, load_json, save_arrays
 
 METHODS = {
     "magsac": "USAC_MAGSAC",
