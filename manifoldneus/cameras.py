@@ -186,6 +186,34 @@ def project_points(K: np.ndarray, Xc: np.ndarray) -> np.ndarray:
     return np.stack([K[..., 0, 0] * x + K[..., 0, 1] * y + K[..., 0, 2], K[..., 1, 1] * y + K[..., 1, 2]], 1)
 
 
+def lift_points(
+    K: np.ndarray, w2c: np.ndarray, uv: np.ndarray, depth: np.ndarray, ray_distance: bool = False
+) -> np.ndarray:
+    """Back-project pixels uv [M,2] of a view with depth [M] to world points [M,3].
+    depth is the z-depth (along the optical axis) unless ``ray_distance`` (distance along the
+    unit ray from the camera centre). Non-positive / non-finite depths give NaN points."""
+    xn = pixels_to_normalised(K, uv)
+    d = np.concatenate([xn, np.ones((len(xn), 1))], 1)
+    depth = np.asarray(depth, np.float64).reshape(-1)
+    if ray_distance:
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    Xc = d * depth[:, None]
+    w2c = to_4x4(w2c)
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    X = (Xc - t) @ R
+    X[~(np.isfinite(depth) & (depth > 0))] = np.nan
+    return X
+
+
+def gauge_from_points(points: np.ndarray, radius: float = 0.8, percentile: float = 95.0) -> tuple[float, np.ndarray]:
+    """Scale s and centre c of the gauge y = s (x - c): median-centred, the ``percentile``-th
+    percentile distance of the points mapped to ``radius`` (the object fits the unit sphere:
+    the unit-sphere gauge of the pose-free rounds, ``pose_init.init_from_matches``)."""
+    centre = np.median(points, axis=0)
+    extent = float(np.percentile(np.linalg.norm(points - centre, axis=1), percentile))
+    return radius / max(extent, 1e-12), centre
+
+
 def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
     """Rotation vectors [M,3] (or one [3]) -> rotation matrices [M,3,3]."""
     from scipy.spatial.transform import Rotation

@@ -113,14 +113,52 @@ def cauchy(err_px: torch.Tensor, scale: float) -> torch.Tensor:
     return scale**2 * torch.log1p((err_px / scale) ** 2)
 
 
+def _padded(groups: np.ndarray, n_groups: int) -> np.ndarray:
+    """Item indices grouped by ``groups`` -> [n_groups, max_count] (pad -1), stable order."""
+    groups = np.asarray(groups, np.int64)
+    if len(groups) == 0:
+        return -np.ones((n_groups, 0), np.int64)
+    order = np.argsort(groups, kind="stable")
+    g = groups[order]
+    counts = np.bincount(g, minlength=n_groups)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pos = np.arange(len(g)) - starts[g]
+    out = -np.ones((n_groups, int(counts.max())), np.int64)
+    out[g, pos] = order
+    return out
+
+
+def triangulate_multiview(R: np.ndarray, t: np.ndarray, xn: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Batched linear (DLT) triangulation.
+
+    R [O,3,3], t [O,3]: w2c of the camera of each observation; xn [O,2] normalised coordinates;
+    idx [T,m] observation indices per point (-1 = padding). Returns X [T,3] (NaN when degenerate)."""
+    T, m = idx.shape
+    X = np.full((T, 3), np.nan)
+    if T == 0 or m == 0:
+        return X
+    valid = idx >= 0
+    k = np.where(valid, idx, 0)
+    P = np.concatenate([R[k], t[k][..., None]], -1)  # [T,m,3,4]
+    x = xn[k]  # [T,m,2]
+    r1 = x[..., 0:1] * P[..., 2, :] - P[..., 0, :]
+    r2 = x[..., 1:2] * P[..., 2, :] - P[..., 1, :]
+    A = np.stack([r1, r2], 2) * valid[..., None, None]  # [T,m,2,4]
+    A = A.reshape(T, 2 * m, 4)
+    A = A / np.maximum(np.linalg.norm(A, axis=-1, keepdims=True), 1e-12)
+    _, _, Vt = np.linalg.svd(A)
+    h = Vt[:, -1, :]
+    ok = np.abs(h[:, 3]) > 1e-12
+    X[ok] = h[ok, :3] / h[ok, 3:4]
+    return X
+
+
 class TrackSet:
     """Multi-view tracks of a round's views (a bundle adjustment's inlier observations, e.g.
     ``pose_init.InitResult.obs_*``): ``view`` [O] (index in ``ids``), ``track`` [O], ``uv`` [O,2] px,
     ``xn`` [O,2] normalised. Tracks with fewer than two views in the round are dropped."""
 
     def __init__(self, ids, K: np.ndarray, obs_view: np.ndarray, obs_point: np.ndarray, obs_uv: np.ndarray):
-        from manifoldneus.pose_init import _padded
-
         local = np.full(max(int(np.max(ids, initial=0)), int(np.max(obs_view, initial=0))) + 1, -1)
         local[np.asarray(ids, int)] = np.arange(len(ids))
         keep = local[np.asarray(obs_view, int)] >= 0
@@ -137,8 +175,6 @@ class TrackSet:
 
     def triangulate(self, w2c: np.ndarray) -> np.ndarray:
         """Points [T,3] (DLT) under world-to-camera poses w2c [V,3|4,4] of the round's views."""
-        from manifoldneus.pose_init import triangulate_multiview
-
         P = np.asarray(w2c, np.float64)[self.view]
         return triangulate_multiview(P[:, :3, :3], P[:, :3, 3], self.xn, self.by_track)
 

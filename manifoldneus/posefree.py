@@ -91,8 +91,10 @@ class Round:
         if learn_poses and self.corr_p.kind == "reprojection":
             from manifoldneus.pose_init import init_from_matches
 
-            # the tracks (not the poses) of a bundle adjustment of this round's views' matches
-            ba = init_from_matches(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W)
+            # the tracks (not the poses) of COLMAP's reconstruction of this round's views' matches
+            with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
+                ba = init_from_matches(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
+                                       sizes=np.tile(inputs.views.images.shape[1:3], (len(inputs.names), 1)))
             self.corr = correspondence.ReprojectionLoss(
                 correspondence.TrackSet(self.ids, inputs.views.K, ba.obs_view, ba.obs_point, ba.obs_uv), self.corr_p,
                 correspondence_weight, device)

@@ -1,9 +1,9 @@
 """anchors: initial poses of the anchor views, then joint field + pose optimisation on them.
 
 Pose initialisation (``anchors.pose_init``):
-- ``matches`` (default): relative poses from the verified essential matrices along a maximum
-  spanning tree of the co-visibility graph, incremental PnP, bundle adjustment, unit-sphere gauge
-  (:func:`manifoldneus.pose_init.init_from_matches`);
+- ``matches`` (default): the front-end's keypoints and verified matches of the anchors (and of the
+  views that bridge them) handed to COLMAP's incremental mapper and bundle adjustment, then the
+  unit-sphere gauge (:func:`manifoldneus.pose_init.init_from_matches`); COLMAP's log goes to log.txt;
 - ``identity``: every anchor at one canonical pose looking at the origin (the paper's wording);
 - ``reference``: the pycolmap reference poses (the `neus-colmap` preset), gauged the same way.
 Writes ``round_0/`` (see :mod:`manifoldneus.posefree`) and the initial poses of every anchor.
@@ -33,7 +33,14 @@ class Params:
                                     lo=0.0, hi=1.0)
     correspondence_weight: float = param(1.0, "Weight of the correspondence term (section `correspondence`) in the "
                                          "anchors' pose loss; 0 = photometric poses only (docs/REFINEMENT.md)", lo=0.0)
-    reproj_px: float = param(3.0, "matches init: inlier reprojection threshold (px)", lo=0.1)
+    reproj_px: float = param(3.0, "matches init: COLMAP's reprojection threshold for keeping observations (px)",
+                             lo=0.1)
+    ba_loss: str = param("cauchy", "matches init: robust loss of a last bundle adjustment after COLMAP's mapper (its own "
+                         "global adjustments are plain least squares); trivial = none. Measured on synthetic, scan24 "
+                         "and scan24_idr (bench/bench_init.py): cauchy at 0.5 px gave the lowest rotation error",
+                         choices=["trivial", "soft_l1", "cauchy", "huber"])
+    ba_loss_px: float = param(0.5, "matches init: scale of that robust loss (px), about twice SIFT's keypoint noise",
+                              lo=0.01)
     bridge_min_matches: int = param(50, "matches init: when the anchors' own co-visibility graph is disconnected or "
                                     "its weakest spanning link has fewer verified matches than this, the "
                                     "initialisation also uses the training views that bridge them along the "
@@ -70,7 +77,7 @@ def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndar
     pts = np.array([p.xyz for p in rec.points3D.values()])
     if len(pts) < 3:
         pts = cameras.camera_centers(ref["w2c"][ref["registered"]])
-    s, centre = pose_init.gauge_from_points(pts, gauge_radius)
+    s, centre = cameras.gauge_from_points(pts, gauge_radius)
     return cameras.transform_w2c(ref["w2c"], s, np.eye(3), -s * centre), ref["registered"].astype(bool)
 
 
@@ -91,6 +98,24 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
                 nb = [j for j in np.argsort(-inputs.W[a]) if registered[j]]
                 w2c[a] = ref[nb[0]] if nb else np.eye(4)
         return w2c, {"method": "reference", "unregistered": missing}
+    res = matches_init(ctx, inputs, anchors, p)
+    ids = res.view_ids
+    bridges = sorted(set(ids) - set(anchors))
+    unplaced = [v for v in res.unplaced if v in set(anchors)]
+    for v in unplaced:
+        ctx.log.warning("initialisation could not place anchor %s (%s); it starts at a neighbour's pose",
+                        inputs.names[v], res.why_unplaced[v])
+    row = {v: k for k, v in enumerate(ids)}
+    w2c[anchors] = res.w2c[[row[a] for a in anchors]]
+    return w2c, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
+                 "bridges": [int(v) for v in bridges], "unplaced": [inputs.names[v] for v in unplaced],
+                 "why_unplaced": {inputs.names[v]: res.why_unplaced[v] for v in unplaced},
+                 **res.diagnostics}
+
+
+def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Params) -> pose_init.InitResult:
+    """The `matches` initialisation of the anchors (and of the views that bridge them, whose poses
+    are not kept): COLMAP on the front-end's matches, then the gauge."""
     ids = init_views(anchors, inputs.W, np.flatnonzero(inputs.train_mask), p.bridge_min_matches)
     bridges = sorted(set(ids) - set(anchors))
     if bridges:
@@ -98,18 +123,12 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
                      "initialisation also uses views %s, which bridge them", mavos.bottleneck_weight(inputs.W, anchors),
                      p.bridge_min_matches, [inputs.names[v] for v in bridges])
     masks = None if inputs.views.masks is None else [inputs.views.masks[v] for v in ids]
-    res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
-                                      reproj_px=p.reproj_px, gauge_radius=p.gauge_radius, masks=masks,
-                                      log=ctx.log.info)
-    unplaced = [v for v in res.unplaced if v in set(anchors)]
-    if unplaced:
-        ctx.log.warning("initialisation could not place anchors %s; they start at a neighbour's pose",
-                        [inputs.names[v] for v in unplaced])
-    row = {v: k for k, v in enumerate(ids)}
-    w2c[anchors] = res.w2c[[row[a] for a in anchors]]
-    return w2c, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
-                 "bridges": [int(v) for v in bridges], "unplaced": [inputs.names[v] for v in unplaced],
-                 **res.diagnostics}
+    sizes = np.tile(inputs.views.images.shape[1:3], (len(inputs.names), 1))
+    with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
+        return pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, sizes=sizes,
+                                           reproj_px=p.reproj_px, final_ba_loss=p.ba_loss,
+                                           final_ba_scale_px=p.ba_loss_px, gauge_radius=p.gauge_radius, masks=masks,
+                                           seed=ctx.section("run").seed, log=ctx.log.info)
 
 
 def init_views(anchors: list[int], W: np.ndarray, trainable, min_matches: int) -> list[int]:

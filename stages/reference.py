@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from manifoldneus import sfm
 from manifoldneus.config import param
 from manifoldneus.io import load_arrays, load_json, native_output_to, save_arrays
 
@@ -91,7 +92,6 @@ def run_colmap(
     db = work_dir / "database.db"
     if db.exists():
         db.unlink()
-    n = len(names)
     if num_threads == 0:
         num_threads = -1
     pycolmap.set_random_seed(seed)
@@ -137,43 +137,16 @@ def run_colmap(
     t_extract = time.perf_counter() - t0
     say(f"pycolmap extraction + exhaustive matching: {t_extract:.2f} s")
 
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = num_threads
-    opts.random_seed = seed
-    opts.min_num_matches = min_num_matches
-    opts.ba_refine_principal_point = False
-    opts.ba_refine_extra_params = False
-    opts.ba_refine_focal_length = not fixed
-    opts.mapper.abs_pose_refine_focal_length = not fixed
-    opts.mapper.abs_pose_refine_extra_params = False
-    out_dir = work_dir / "models"
-    out_dir.mkdir(exist_ok=True)
+    opts = sfm.mapping_options(() if fixed else ("focal",), num_threads=num_threads, seed=seed,
+                               min_num_matches=min_num_matches)
+    opts.extract_colors = True
     t0 = time.perf_counter()
-    models = pycolmap.incremental_mapping(db, image_dir, out_dir, options=opts)
+    rec, n_models = sfm.incremental_mapping(db, opts, work_dir, image_dir)
     t_map = time.perf_counter() - t0
-    say(f"pycolmap incremental mapping: {t_map:.2f} s, {len(models)} model(s)")
-
-    w2c = np.tile(np.eye(4), (n, 1, 1))
-    registered = np.zeros(n, bool)
-    K_out = np.array(K, np.float64) if K is not None else np.zeros((n, 3, 3))
-    rec = None
-    if models:
-        rec = max(models.values(), key=lambda r: r.num_reg_images())
-        index = {nm: v for v, nm in enumerate(names)}
-        for image in rec.images.values():
-            if image.name not in index or not image.has_pose:
-                continue
-            v = index[image.name]
-            w2c[v, :3, :4] = np.asarray(image.cam_from_world().matrix(), np.float64)
-            registered[v] = True
-            cam = image.camera
-            fx, fy, cx, cy = (list(cam.params) + [0, 0, 0, 0])[:4] if cam.model.name == "PINHOLE" else (
-                cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y
-            )
-            K_out[v] = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
-        pts = [(p.xyz, p.color) for p in rec.points3D.values()]
-    else:
-        pts = []
+    say(f"pycolmap incremental mapping: {t_map:.2f} s, {n_models} model(s)")
+    poses = sfm.read_poses(rec, names, K)
+    w2c, registered, K_out = poses["w2c"], poses["registered"], poses["K"]
+    pts = [(p.xyz, p.color) for p in rec.points3D.values()] if rec is not None else []
     return {
         "w2c": w2c,
         "registered": registered,
@@ -183,7 +156,7 @@ def run_colmap(
         "reconstruction": rec,
         "extract_match_seconds": float(t_extract),
         "mapping_seconds": float(t_map),
-        "n_models": len(models),
+        "n_models": n_models,
     }
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from manifoldneus import artifacts, pose_init, posefree
+from manifoldneus import artifacts, io, pose_init, posefree
 from manifoldneus.config import param
 
 
@@ -53,7 +53,8 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
     from manifoldneus import cameras
 
     ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
-    res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, reproj_px=reproj_px)
+    res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, reproj_px=reproj_px,
+                                      sizes=np.tile(inputs.views.images.shape[1:3], (len(inputs.names), 1)))
     row = {v: k for k, v in enumerate(ids)}
     ok = [v for v in placed_ids if res.placed[row[v]]]
     if len(ok) < 3:
@@ -97,7 +98,8 @@ def run(ctx) -> None:
                                                        reproj_px=p.pnp_reproj_px, min_inliers=p.pnp_min_inliers)
             if p.placement == "matches" or info["method"] != "pnp":
                 if from_matches is None:
-                    from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px)
+                    with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
+                        from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px)
                 if from_matches.get(v) is not None:
                     pose, info = from_matches[v], {"method": "matches", "after": info["method"] if p.placement == "depth" else None}
             init[inputs.names[v]] = info

@@ -115,3 +115,16 @@ def test_held_out_draw_is_fixed_by_the_seed(scene):
     b, _ = losses(scene, "sampson")
     assert torch.equal(a.ms.held_index, b.ms.held_index)
     assert 0.1 < a.n_held_out / len(a.ms) < 0.3  # holdout_frac 0.2
+
+
+def test_multiview_dlt_recovers_exact_points():
+    """The tracks' batched DLT (TrackSet.triangulate's solver) is exact on noise-free observations."""
+    rng = np.random.default_rng(0)
+    w2c = synthetic.camera_poses(8)
+    K = np.broadcast_to(synthetic.intrinsics(200, 200), (8, 3, 3))
+    X = rng.uniform(-0.5, 0.5, (300, 3))
+    cam, pt = np.repeat(np.arange(8), 300), np.tile(np.arange(300), 8)
+    Xc = np.einsum("oij,oj->oi", w2c[cam, :3, :3], X[pt]) + w2c[cam, :3, 3]
+    xn = cameras.pixels_to_normalised(K[cam], cameras.project_points(K[cam], Xc))
+    Xt = correspondence.triangulate_multiview(w2c[cam, :3, :3], w2c[cam, :3, 3], xn, correspondence._padded(pt, 300))
+    assert np.abs(Xt - X).max() < 1e-8
