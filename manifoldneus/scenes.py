@@ -190,7 +190,9 @@ def every_nth_view(data: dict, stride: int) -> dict:
 
 
 def read_views(ref: SceneRef, p) -> dict:
-    """Canonical views (see docs/STAGES.md) plus ``names``, ``layout``; ``p`` is IngestParams."""
+    """Canonical views (see docs/STAGES.md) plus ``names``, ``layout`` and ``intrinsics_source``
+    (calibrated: the layout's cameras; given: ``ingest.intrinsics``; exif: the photos' EXIF focal
+    length; default: a guess, 1.2 x the larger side); ``p`` is IngestParams."""
     if ref.kind == "synthetic":
         from manifoldneus import synthetic
 
@@ -201,13 +203,14 @@ def read_views(ref: SceneRef, p) -> dict:
         reader = {"monosdf": _monosdf_views, "idr": _idr_views, "colmap": _colmap_views, "images": _plain_views}[layout]
         views = reader(ref.path, p)
         views["layout"] = layout
+    source = views.pop("intrinsics_source", "calibrated")
     views = every_nth_view(views, p.view_stride)
     if not p.load_masks:
         views.pop("masks", None)
     if not p.load_priors:
         views.pop("mono_depth", None)
         views.pop("mono_normal", None)
-    return _downscale(views, p.downscale)
+    return {**_downscale(views, p.downscale), "intrinsics_source": source}
 
 
 def _monosdf_intrinsics(world_mats: list[np.ndarray], size: int, original_size) -> np.ndarray:
@@ -321,24 +324,27 @@ def _plain_views(path: Path, p) -> dict:
     if p.intrinsics:
         if len(p.intrinsics) != 4:
             raise SceneError("ingest.intrinsics must be [fx, fy, cx, cy] in pixels of the input images")
-        fx, fy, cx, cy = p.intrinsics
+        (fx, fy, cx, cy), source = p.intrinsics, "given"
     else:
-        fx, fy, cx, cy = _estimate_intrinsics(files[0], w, h)
+        fx, fy, cx, cy, source = _estimate_intrinsics(files[0], w, h)
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
-    return {"images": np.stack(images), "K": np.repeat(K[None], len(files), 0), "names": [f.stem for f in files]}
+    return {"images": np.stack(images), "K": np.repeat(K[None], len(files), 0), "names": [f.stem for f in files],
+            "intrinsics_source": source}
 
 
-def _estimate_intrinsics(image_path: Path, w: int, h: int) -> tuple[float, float, float, float]:
-    """pycolmap's prior for an uncalibrated image: EXIF focal length if present, else 1.2 * max(w, h)."""
+def _estimate_intrinsics(image_path: Path, w: int, h: int) -> tuple[float, float, float, float, str]:
+    """pycolmap's prior for an uncalibrated image: (fx, fy, cx, cy, "exif") from the EXIF focal
+    length if present, else (1.2 * max(w, h), ..., "default")."""
     import pycolmap
 
     try:
         cam = pycolmap.infer_camera_from_image(str(image_path))
         K = np.asarray(cam.calibration_matrix())
-        return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+        source = "exif" if cam.has_prior_focal_length else "default"
+        return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), source
     except Exception:  # noqa: BLE001 - fall back to COLMAP's default prior
         f = 1.2 * max(w, h)
-        return f, f, w / 2.0, h / 2.0
+        return f, f, w / 2.0, h / 2.0, "default"
 
 
 # ---------------------------------------------------------------------------- ground truth

@@ -64,6 +64,7 @@ def run(ctx) -> None:
     views = scenes.read_views(ctx.scene_ref, p)
     names = views.pop("names")
     layout = views.pop("layout")
+    intrinsics_source = views.pop("intrinsics_source")
     n, h, w = views["images"].shape[:3]
     if n < MIN_VIEWS:
         raise scenes.SceneError(f"{ctx.scene_ref.path or ctx.scene}: {n} view(s); pose-free reconstruction needs at "
@@ -74,9 +75,9 @@ def run(ctx) -> None:
     io.save_json(ctx.out / "views.json", {
         "names": names, "height": h, "width": w, "layout": layout,
         "has_masks": "masks" in views, "has_mono_depth": "mono_depth" in views,
-        "has_mono_normal": "mono_normal" in views,
+        "has_mono_normal": "mono_normal" in views, "intrinsics_source": intrinsics_source,
         "source": str(ctx.scene_ref.path) if ctx.scene_ref.path else ctx.scene_ref.name,
     })
     io.save_png(ctx.out / "contact_sheet.png", contact_sheet(views["images"], views.get("masks")))
-    ctx.metrics.update(n_views=n, width=w, height=h, layout=layout,
+    ctx.metrics.update(n_views=n, width=w, height=h, layout=layout, intrinsics_source=intrinsics_source,
                        fx_mean=float(views["K"][:, 0, 0].mean()), fy_mean=float(views["K"][:, 1, 1].mean()))

@@ -1,10 +1,12 @@
 """reference: the pycolmap incremental-SfM baseline on the same images.
 
 COLMAP's own SIFT extraction, exhaustive matching with its two-view verification, and
-incremental mapping, on the ingest's images, with the ingest's intrinsics held fixed (PINHOLE
-camera from K; focal length, principal point and extra parameters not refined) unless
-``intrinsics: estimate`` (PINHOLE with COLMAP's focal guess and the principal point at the image
-centre, focal length refined by bundle adjustment).
+incremental mapping (:mod:`manifoldneus.sfm`'s options), on the ingest's images. Intrinsics
+(``intrinsics``): ``fixed`` holds the ingest's K (PINHOLE from K; nothing refined); ``refine``
+starts from the ingest's K (one camera for one K) and refines the focal length by bundle
+adjustment; ``estimate`` starts from COLMAP's own guess; ``auto`` (default) is ``fixed`` for
+calibrated or given intrinsics and ``refine`` when the ingest's K is an EXIF prior or a guess
+(``views.json``'s ``intrinsics_source``). The estimated focal length is in the metrics.
 
 Outputs:
 
@@ -41,8 +43,9 @@ class Params:
     """Section `reference` of params.yaml."""
 
     intrinsics: str = param(
-        "fixed", "fixed: the ingest's K held constant; estimate: COLMAP estimates the focal length", choices=["fixed", "estimate"]
-    )
+        "auto", "fixed: the ingest's K held constant; refine: focal length refined from the ingest's K; estimate: "
+        "COLMAP's own guess, refined; auto: fixed for calibrated or given intrinsics, else refine",
+        choices=["auto", "fixed", "refine", "estimate"])
     max_features: int = param(8192, "COLMAP SIFT max_num_features per image", lo=1)
     num_threads: int = param(1, "Threads for COLMAP extraction, matching and mapping (-1 = all cores). COLMAP's "
                              "result is the same twice only single-threaded (measured: 2 threads moved a tiny scene's "
@@ -61,6 +64,13 @@ OUTPUTS = ("poses.zarr", "sparse")
 
 def _same_K(K: np.ndarray, tol: float = 1e-3) -> bool:
     return bool(np.all(np.abs(K - K[0]) < tol))
+
+
+def intrinsics_mode(setting: str, source: str) -> str:
+    """``auto`` -> ``fixed`` for calibrated or given intrinsics, ``refine`` for an EXIF prior or a guess."""
+    if setting != "auto":
+        return setting
+    return "fixed" if source in ("calibrated", "given") else "refine"
 
 
 def run_colmap(
@@ -96,9 +106,9 @@ def run_colmap(
         num_threads = -1
     pycolmap.set_random_seed(seed)
 
-    fixed = intrinsics == "fixed"
+    fixed = intrinsics in ("fixed", "refine")  # the camera starts from the ingest's K
     if fixed and K is None:
-        raise ValueError("reference.intrinsics=fixed needs intrinsics K from the ingest")
+        raise ValueError(f"reference.intrinsics={intrinsics} needs intrinsics K from the ingest")
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     if fixed and _same_K(K):
@@ -137,7 +147,7 @@ def run_colmap(
     t_extract = time.perf_counter() - t0
     say(f"pycolmap extraction + exhaustive matching: {t_extract:.2f} s")
 
-    opts = sfm.mapping_options(() if fixed else ("focal",), num_threads=num_threads, seed=seed,
+    opts = sfm.mapping_options(() if intrinsics == "fixed" else ("focal",), num_threads=num_threads, seed=seed,
                                min_num_matches=min_num_matches)
     opts.extract_colors = True
     t0 = time.perf_counter()
@@ -172,6 +182,7 @@ def run(ctx) -> None:
     names = list(meta["names"])
     arrays = load_arrays(src / "views.zarr", ["images", "K"])
     files = [f"{Path(nm).stem if Path(nm).suffix else nm}.png" for nm in names]
+    intrinsics = intrinsics_mode(p.intrinsics, meta.get("intrinsics_source", "calibrated"))
     if len(set(files)) != len(files):
         files = [f"{v:06d}.png" for v in range(len(names))]
 
@@ -183,7 +194,7 @@ def run(ctx) -> None:
             save_png(image_dir / f, im)
         with native_output_to(ctx.log_path):  # COLMAP's own log (hundreds of lines) goes to log.txt
             res = run_colmap(
-                image_dir, files, arrays["K"].astype(np.float64), tmp, intrinsics=p.intrinsics,
+                image_dir, files, arrays["K"].astype(np.float64), tmp, intrinsics=intrinsics,
                 max_features=p.max_features, num_threads=p.num_threads, seed=p.seed,
                 min_num_matches=p.min_num_matches, log=ctx.log,
             )
@@ -201,7 +212,7 @@ def run(ctx) -> None:
             "names": names,
             "colmap_names": files,
             "frame": "COLMAP world frame (arbitrary similarity); OpenCV camera frame, world-to-camera",
-            "intrinsics": p.intrinsics,
+            "intrinsics": intrinsics,
         },
         chunk_first=False,
     )
@@ -220,4 +231,9 @@ def run(ctx) -> None:
     ctx.metrics["n_models"] = int(res["n_models"])
     ctx.metrics["extract_match_seconds"] = res["extract_match_seconds"]
     ctx.metrics["mapping_seconds"] = res["mapping_seconds"]
-    ctx.metrics["intrinsics"] = p.intrinsics
+    ctx.metrics["intrinsics"] = intrinsics
+    if reg.any():  # the focal length COLMAP ended with, beside the ingest's (they differ when refined)
+        ctx.metrics["focal_px"] = float(np.mean(res["K"][reg][:, [0, 1], [0, 1]]))
+        ctx.metrics["focal_px_ingest"] = float(np.mean(arrays["K"][reg][:, [0, 1], [0, 1]]))
+        ctx.log.info(f"focal length {ctx.metrics['focal_px']:.1f} px (ingest: {ctx.metrics['focal_px_ingest']:.1f} px, "
+                     f"intrinsics {intrinsics})")

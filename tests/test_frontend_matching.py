@@ -93,11 +93,12 @@ class FakeCtx:
         raise KeyError(name)
 
 
-def make_ingest(root: Path, images: np.ndarray, K: np.ndarray, names: list[str]) -> Path:
+def make_ingest(root: Path, images: np.ndarray, K: np.ndarray, names: list[str], intrinsics_source="calibrated") -> Path:
     root.mkdir(parents=True, exist_ok=True)
     io.save_arrays(root / "views.zarr", {"images": images, "K": K})
     io.save_json(root / "views.json", {"names": names, "height": images.shape[1], "width": images.shape[2],
-                                       "layout": "test", "has_masks": False, "has_mono_depth": False,
+                                       "layout": "test", "intrinsics_source": intrinsics_source,
+                                       "has_masks": False, "has_mono_depth": False,
                                        "has_mono_normal": False, "source": "test"})
     return root
 
@@ -372,3 +373,23 @@ def test_reference_pycolmap_registers_scan24_views(tmp_path, caplog):
             R_est = poses["w2c"][b, :3, :3] @ poses["w2c"][a, :3, :3].T
             R_gt = gt[b][:3, :3] @ gt[a][:3, :3].T
             assert rotation_angle_deg(R_est.T @ R_gt) < 1.0  # measured 0.35 deg max here; all 49 views give 0.16 deg mean
+
+
+@needs_dtu
+def test_reference_refines_a_guessed_focal_length(tmp_path):
+    """A folder without calibration: the ingest's K is a guess (here the true focal length x 1.3);
+    `intrinsics: auto` makes pycolmap refine it from there, towards the truth."""
+    import cv2
+
+    ids = list(range(0, 49, 3))
+    images = np.stack([cv2.imread(str(SHARED_DATA / "dtu" / "scan24" / f"{i:06d}_rgb.png"))[..., ::-1] for i in ids])
+    K_true = np.stack([scan24_K(i)[0] for i in ids])
+    K_guess = K_true.copy()
+    K_guess[:, :2, :2] = K_true[0, [0, 1], [0, 1]].mean() * 1.3 * np.eye(2)
+    ingest = make_ingest(tmp_path / "ingest", images, K_guess, [f"{i:06d}" for i in ids], intrinsics_source="default")
+    ctx = FakeCtx(reference, tmp_path / "reference", {"ingest": ingest})
+    reference.run(ctx)
+    assert ctx.metrics["intrinsics"] == "refine"
+    f_true = K_true[:, [0, 1], [0, 1]].mean()
+    assert abs(ctx.metrics["focal_px_ingest"] / f_true - 1.3) < 0.01
+    assert abs(ctx.metrics["focal_px"] / f_true - 1) < 0.05, (ctx.metrics["focal_px"], f_true)

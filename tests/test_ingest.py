@@ -63,7 +63,7 @@ def test_idr_fixture_roundtrip(idr_folder, tiny_synthetic):
 
 def test_colmap_fixture_roundtrip(colmap_folder, tiny_synthetic):
     v = views_of(colmap_folder)
-    assert v["layout"] == "colmap" and len(v["images"]) == 6
+    assert v["layout"] == "colmap" and len(v["images"]) == 6 and v["intrinsics_source"] == "calibrated"
     np.testing.assert_allclose(v["K"][0], tiny_synthetic.K[0], atol=1e-6)
     gt = gt_of(colmap_folder)
     # normalised frame: a similarity of the original; rotations unchanged
@@ -76,8 +76,11 @@ def test_colmap_fixture_roundtrip(colmap_folder, tiny_synthetic):
 def test_plain_folder_given_and_estimated_intrinsics(plain_folder):
     v = views_of(plain_folder, intrinsics=[100.0, 101.0, 32.0, 31.0])
     assert v["layout"] == "images" and (v["K"][:, 0, 0] == 100).all() and (v["K"][:, 1, 2] == 31).all()
+    assert v["intrinsics_source"] == "given"  # held fixed downstream
     v = views_of(plain_folder)
     assert v["K"][0, 0, 0] > 0 and abs(v["K"][0, 0, 2] - 32) < 1
+    assert v["intrinsics_source"] == "default"  # PNGs carry no EXIF: a guess, refined downstream
+    assert v["K"][0, 0, 0] == 1.2 * max(v["images"].shape[1:3])
     assert gt_of(plain_folder) is None
 
 
