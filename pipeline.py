@@ -7,7 +7,7 @@
     python pipeline.py show --scene S STAGE
     python pipeline.py params-diff --scene S STAGE
     python pipeline.py verify --scene S
-    python pipeline.py view --scene S [--preset NAME] [--out FILE] [--open]
+    python pipeline.py view --scene S [--preset NAME] [--out FILE] [--open] [--screenshot PNG]
     python pipeline.py gc [--scene S]
 
 Artifact layout: ``artifacts/<scene>/<stage>/<fingerprint>/`` (files + ``manifest.json`` +
@@ -920,6 +920,8 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", type=Path, default=None, help="the HTML file (default: <artifacts>/<scene>/viewer/viewer.html)")
     sp.add_argument("--max-faces", type=int, default=None, help="decimate the mesh to at most this many triangles")
     sp.add_argument("--open", action="store_true", help="also open the page in the default browser")
+    sp.add_argument("--screenshot", type=Path, default=None, metavar="PNG",
+                    help="also render the page in headless Chromium and save what it shows (1200x800)")
     sp = sub.add_parser("gc", help="delete artifact versions no longer current")
     sp.add_argument("--scene", default=None)
     sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS)
@@ -994,6 +996,12 @@ def _command(args) -> int:
         decimated = "" if held["faces"] == held["faces_full"] else f" decimated from {held['faces_full']}"
         print(f"{path}  ({held['bytes'] / 2**20:.1f} MiB: {held['optimised']} optimised cameras, "
               f"{held['held_out_drawn']} held-out cameras, mesh of {held['faces']} triangles{decimated})")
+        if args.screenshot:
+            from manifoldneus import viewer
+
+            shown = viewer.render_in_browser(path, args.screenshot)
+            print(f"{args.screenshot}  (the page in headless Chromium: {shown['attributes'].get('cameras-drawn')} "
+                  f"cameras drawn{'; page errors: ' + shown['attributes']['errors'] if 'errors' in shown['attributes'] else ''})")
         if args.open:
             import webbrowser
 

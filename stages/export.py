@@ -56,6 +56,17 @@ def world_from_model(gt_dir, w2c: np.ndarray, valid: np.ndarray, frame: str) -> 
     return M, "input", gt_meta["units"], how
 
 
+def rigid(w2c: np.ndarray) -> np.ndarray:
+    """Poses [N,4,4] with each rotation replaced by its nearest rotation matrix: the rounds store float32
+    poses, orthonormal to 1e-7 only, and a COLMAP model (quaternions) can hold nothing but rotations;
+    so both exports hold the same poses."""
+    from scipy.spatial.transform import Rotation
+
+    out = cameras.to_4x4(w2c)
+    out[:, :3, :3] = Rotation.from_matrix(out[:, :3, :3]).as_matrix()
+    return out
+
+
 def run(ctx) -> None:
     p: Params = ctx.params
     final_dir = ctx.input("successors") / "final"
@@ -66,7 +77,7 @@ def run(ctx) -> None:
     M, frame, units, how = world_from_model(ctx.input("ground_truth"), w2c, valid, p.frame)
     ctx.log.info("exports in the %s frame (%s): %s", frame, units, how)
     s, R, t = cameras.sim3_from_matrix(M)
-    w2c_world = cameras.transform_w2c(w2c, s, R, t)  # [N,4,4]
+    w2c_world = rigid(cameras.transform_w2c(w2c, s, R, t))  # [N,4,4]
 
     import trimesh
 
