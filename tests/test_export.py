@@ -121,3 +121,28 @@ def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
     np.testing.assert_allclose(np.sort(glb.vertices, 0), np.sort(ply.vertices, 0), atol=1e-5)
     colours = np.asarray(ply.visual.vertex_colors)[:, :3]
     assert ply.visual.kind == "vertex" and colours.std() > 0  # not one flat colour
+
+
+def test_the_export_frame_undoes_the_alignment_and_the_normalisation(tmp_path):
+    """world_from_model: the method's cameras are the input's under a known similarity and the input's
+    own normalisation (DTU-like: mm, offset); the frame found maps them exactly onto the input's world."""
+    from stages.export import world_from_model
+
+    _, w2c_world = random_cameras(6, seed=3, spread=300.0)  # the input's cameras, in "mm"
+    normalization = cameras.sim3_matrix(250.0, np.eye(3), np.array([10.0, -40.0, 600.0]))  # unit sphere -> mm
+    gt_norm = cameras.transform_w2c(w2c_world, *cameras.sim3_from_matrix(np.linalg.inv(normalization)))
+    model_from_gt = (0.7, cameras.rotvec_to_matrix([0.3, -0.2, 0.5])[0], np.array([0.1, 0.2, -0.3]))
+    w2c_model = cameras.transform_w2c(gt_norm, *model_from_gt)  # what the method found, in its own gauge
+    io.save_arrays(tmp_path / "poses.zarr", {"w2c": gt_norm, "normalization": normalization}, chunk_first=False)
+    io.save_json(tmp_path / "gt.json", {"has_poses": True, "units": "mm"})
+    valid = np.ones(6, bool)
+    M, frame, units, how = world_from_model(tmp_path, w2c_model, valid, "input")
+    assert (frame, units) == ("input", "mm") and "6 final camera centres" in how
+    back = cameras.transform_w2c(w2c_model, *cameras.sim3_from_matrix(M))
+    np.testing.assert_allclose(back, w2c_world, atol=1e-9)
+    # asked for the method's frame, or too few views, or an input without cameras: identity
+    assert world_from_model(tmp_path, w2c_model, valid, "model")[1] == "model"
+    assert world_from_model(tmp_path, w2c_model, np.arange(6) < 2, "input")[1] == "model"
+    io.save_json(tmp_path / "gt.json", {"has_poses": False})
+    M, frame, _, how = world_from_model(tmp_path, w2c_model, valid, "input")
+    assert frame == "model" and np.array_equal(M, np.eye(4)) and "no cameras of its own" in how
