@@ -6,7 +6,7 @@ VALUES ?=
 ARGS ?=
 PY := .venv/bin/python
 
-.PHONY: all stage test bench bench-refine results report sweep clean setup status
+.PHONY: all stage test bench bench-refine results report sweep clean setup status view
 
 setup: .venv/.installed
 .venv/.installed: requirements.txt
@@ -24,6 +24,10 @@ stage: setup
 
 status: setup
 	$(PY) pipeline.py status --scene $(SCENE) $(ARGS)
+
+# the run's viewer page (mesh and cameras in a browser; one self-contained HTML file): prints its path
+view: setup
+	$(PY) pipeline.py view --scene $(SCENE) $(ARGS)
 
 test: setup
 	$(PY) -m pytest -q tests

@@ -7,6 +7,7 @@
     python pipeline.py show --scene S STAGE
     python pipeline.py params-diff --scene S STAGE
     python pipeline.py verify --scene S
+    python pipeline.py view --scene S [--preset NAME] [--out FILE] [--open] [--screenshot PNG]
     python pipeline.py gc [--scene S]
 
 Artifact layout: ``artifacts/<scene>/<stage>/<fingerprint>/`` (files + ``manifest.json`` +
@@ -389,6 +390,20 @@ class Store:
             return None
         return json.loads((self.version_dir(stage, fingerprint) / MANIFEST).read_text())
 
+    def lineage(self, stage: str) -> dict[str, Path]:
+        """The current version of ``stage`` and the versions of all its upstream stages that it was
+        computed from (as its manifests name them): one consistent set, whatever the other stages'
+        pointers say now. Stage -> version folder; {} when ``stage`` has no current version."""
+        fp = self.current(stage)
+        todo, out = ([(stage, fp)] if fp else []), {}
+        while todo:
+            name, fp = todo.pop()
+            if name in out:
+                continue
+            out[name] = self.version_dir(name, fp)
+            todo.extend(self.manifest(name, fp).get("upstream", {}).items())
+        return out
+
     @contextlib.contextmanager
     def lock(self):
         self.scene_dir.mkdir(parents=True, exist_ok=True)
@@ -685,6 +700,12 @@ def run_summary(scene_name: str, report: dict[str, str], artifacts=DEFAULT_ARTIF
     if "mesh" in report and store.current("mesh"):
         mesh_dir = store.version_dir("mesh", store.current("mesh"))
         out += [f"mesh:    {mesh_dir / 'mesh.ply'}", f"cameras: {mesh_dir / 'colmap'} (COLMAP text model)"]
+    if "export" in report and store.current("export"):
+        export_dir = store.version_dir("export", store.current("export"))
+        frame = json.loads((export_dir / "world_from_model.json").read_text())
+        out.append(f"exports: {export_dir} (transforms.json, colmap/, mesh.glb, mesh.ply; {frame['frame']} frame, "
+                   f"{frame['units']})")
+        out.append(f"viewer:  python pipeline.py view --scene {scene_name}{f' --preset {preset}' if preset else ''}")
     if "evaluate" in report:
         out.append(f"report:  make report SCENE={scene_name}")
     return "\n".join(out)
@@ -806,6 +827,28 @@ def show(scene_name: str, stage: str, artifacts=DEFAULT_ARTIFACTS, data_root=Non
     return "\n".join(out)
 
 
+def view(scene_name: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=None, out: Path | None = None,
+         max_faces: int | None = None) -> tuple[Path, dict]:
+    """Write the viewer page of a scene's run: its ``export`` stage's current version and the
+    versions that one was computed from (:meth:`Store.lineage`). Default path:
+    ``<artifacts>/<scene>/viewer/viewer.html`` (``viewer@<preset>.html`` for a preset). Returns
+    (path, what the page holds: camera counts, triangles, bytes)."""
+    from manifoldneus import viewer
+
+    scene = resolve_scene(scene_name, data_root)
+    store = Store(artifacts, scene.name, preset)
+    versions = store.lineage("export")
+    if not versions:
+        for_preset = f" --preset {preset}" if preset else ""
+        raise PipelineError(f"scene {scene.name}{for_preset} has no exported result to view in {Path(artifacts)}; "
+                            f"run: python pipeline.py run --scene {scene_name}{for_preset}")
+    for stage, folder in versions.items():
+        _refuse_damaged(store, stage, folder.name, scene_name)
+    path = Path(out) if out else store.scene_dir / "viewer" / ("viewer.html" if preset is None else f"viewer@{preset}.html")
+    title = scene.name + (f" ({preset})" if preset else "")
+    return path, viewer.write_page(versions, path, title, max_faces or viewer.MAX_FACES)
+
+
 def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None) -> list[Path]:
     """Delete versions that no `current` pointer names, and leftovers of interrupted runs."""
     removed = []
@@ -871,6 +914,14 @@ def _parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("verify", help="re-hash the current versions' files against their manifests")
     common(sp, params=False)
     sp.add_argument("--preset", default=None)
+    sp = sub.add_parser("view", help="write the run's viewer page (mesh and cameras in a browser) and print its path")
+    common(sp, params=False)
+    sp.add_argument("--preset", default=None)
+    sp.add_argument("--out", type=Path, default=None, help="the HTML file (default: <artifacts>/<scene>/viewer/viewer.html)")
+    sp.add_argument("--max-faces", type=int, default=None, help="decimate the mesh to at most this many triangles")
+    sp.add_argument("--open", action="store_true", help="also open the page in the default browser")
+    sp.add_argument("--screenshot", type=Path, default=None, metavar="PNG",
+                    help="also render the page in headless Chromium and save what it shows (1200x800)")
     sp = sub.add_parser("gc", help="delete artifact versions no longer current")
     sp.add_argument("--scene", default=None)
     sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS)
@@ -940,6 +991,21 @@ def _command(args) -> int:
         if damaged:
             print(f"rebuild: python pipeline.py run --scene {args.scene} --force {' --force '.join(damaged)}")
             return 1
+    elif args.command == "view":
+        path, held = view(args.scene, args.artifacts, args.data_root, args.preset, args.out, args.max_faces)
+        decimated = "" if held["faces"] == held["faces_full"] else f" decimated from {held['faces_full']}"
+        print(f"{path}  ({held['bytes'] / 2**20:.1f} MiB: {held['optimised']} optimised cameras, "
+              f"{held['held_out_drawn']} held-out cameras, mesh of {held['faces']} triangles{decimated})")
+        if args.screenshot:
+            from manifoldneus import viewer
+
+            shown = viewer.render_in_browser(path, args.screenshot)
+            print(f"{args.screenshot}  (the page in headless Chromium: {shown['attributes'].get('cameras-drawn')} "
+                  f"cameras drawn{'; page errors: ' + shown['attributes']['errors'] if 'errors' in shown['attributes'] else ''})")
+        if args.open:
+            import webbrowser
+
+            webbrowser.open(path.resolve().as_uri())
     elif args.command == "gc":
         removed = gc(args.artifacts, args.scene)
         print(f"removed {len(removed)} old version(s)")

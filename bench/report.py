@@ -7,8 +7,9 @@ named as missing and the report goes on.
 
 Systems: ManifoldNeuS (the default run), the presets ``neus-barf`` and ``neus-colmap`` (their
 ``current@<preset>`` pointers) and the pycolmap reference (stages ``reference`` + ``evaluate_poses``).
-Sections: schedule (supplement Fig. A6), aligned cameras (Fig. A2), pose error per round, loss
-curves, mesh previews, rendered vs real held-out views, and the easy-view-bias analysis of
+Sections: a link to the interactive viewer page (mesh and cameras in a browser, written beside the
+report: ``viewer.html``), schedule (supplement Fig. A6), aligned cameras (Fig. A2), pose error per
+round, loss curves, mesh previews, rendered vs real held-out views, and the easy-view-bias analysis of
 Fig. A1 for NeuS-BARF and ManifoldNeuS. Output: ``artifacts/<scene>/report/`` unless ``--out``;
 ``report.json`` beside the page holds the numbers behind the tables and plots.
 
@@ -355,6 +356,24 @@ def section_systems(page: Page, systems: dict[str, Pointers], reference: tuple[P
     page.add("")
 
 
+def section_viewer(page: Page, systems: dict[str, Pointers], scene: str) -> None:
+    """The viewer page of each system that has exported its result, written beside the report
+    (the same page as ``pipeline.py view``), and a link to it."""
+    from manifoldneus import viewer
+
+    page.add("## Viewer", "")
+    for name, ptr in systems.items():
+        versions = ptr.store.lineage("export")
+        if not versions:
+            page.missing(f"{name} viewer", f"stage export: {_run_hint(scene, ptr.preset)}")
+            continue
+        filename = f"{slug(name)}_viewer.html"
+        held = viewer.write_page(versions, page.out / filename, f"{scene}: {name}")
+        page.add(f"- [{name}: mesh and cameras in the browser]({filename}) ({held['optimised']} optimised cameras, "
+                 f"{held['held_out_drawn']} held-out cameras, {held['faces']} triangles; one self-contained file)")
+    page.add("")
+
+
 def section_schedule(page: Page, systems: dict[str, Pointers], scene: str) -> None:
     page.add("## Schedule (supplement Fig. A6)", "")
     for name, ptr in systems.items():
@@ -534,6 +553,7 @@ def build_report(scene: str, artifacts: Path = pipeline.DEFAULT_ARTIFACTS, out: 
              "only (nothing was trained). Systems: ManifoldNeuS (default run), the presets `neus-barf` and "
              "`neus-colmap`, and the pycolmap reference (stages `reference` + `evaluate_poses`).", "")
     section_systems(page, systems, reference, scene)
+    section_viewer(page, systems, scene)
     section_pose_errors(page, rows, gt, scene)
     section_schedule(page, systems, scene)
     section_cameras(page, systems, reference, rows, gt)

@@ -12,6 +12,9 @@ Conventions (used everywhere else, restated nowhere else):
   ``C = -R.T @ t`` (= ``c2w[:3, 3]``). Arrays of poses are ``[N,3,4]`` or ``[N,4,4]``.
 * A similarity ``(s, R, t)`` maps points ``y = s * R @ x + t``; as a 4x4 matrix
   ``[[s R, t], [0, 1]]``.
+* Exports for other tools (nerfstudio's ``transforms.json``, three.js, Blender) use camera-to-world
+  poses with **OpenGL camera axes** (x right, y up, the camera looks along -z):
+  :func:`opengl_c2w` and :func:`w2c_from_opengl_c2w` convert; COLMAP's ``cam_from_world`` is ours.
 * Learnable pose corrections are se(3) vectors ``xi = (rho, omega)`` (translation part
   first, then the rotation vector), applied on the left of the world-to-camera pose:
   ``w2c' = exp(xi) @ w2c`` (a perturbation in the camera frame, as in BARF).
@@ -107,6 +110,13 @@ def umeyama_sim3(src: np.ndarray, dst: np.ndarray, with_scale: bool = True):
     return s, R, t
 
 
+def align_centres(w2c_src: np.ndarray, w2c_dst: np.ndarray, valid=None, with_scale: bool = True):
+    """The similarity (s, R [3,3], t [3]) that takes the camera centres of ``w2c_src`` [N,4,4] onto
+    those of ``w2c_dst`` [N,4,4] (Umeyama), over the ``valid`` views (bool [N]; default all, >= 3)."""
+    valid = np.ones(len(w2c_src), bool) if valid is None else np.asarray(valid, bool)
+    return umeyama_sim3(camera_centers(w2c_src[valid]), camera_centers(w2c_dst[valid]), with_scale)
+
+
 def sim3_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     M = np.eye(4)
     M[:3, :3] = s * R
@@ -132,6 +142,34 @@ def transform_w2c(w2c: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np
     out[..., :3, 3] = s * tc - np.einsum("...ij,j->...i", Rc @ R.T, t)
     out[..., 3, 3] = 1.0
     return out
+
+
+def sim3_from_matrix(M: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R, t) of a 4x4 similarity ``[[s R, t], [0, 1]]`` (s > 0, R a rotation)."""
+    M = np.asarray(M, np.float64)
+    s = float(abs(np.linalg.det(M[:3, :3])) ** (1 / 3))
+    return s, M[:3, :3] / s, M[:3, 3].copy()
+
+
+def transform_points(M: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Points [P,3] mapped by a 4x4 affine matrix (a similarity ``y = s R x + t``); [P,3]."""
+    M = np.asarray(M, np.float64)
+    return np.asarray(x, np.float64) @ M[:3, :3].T + M[:3, 3]
+
+
+# Flips a camera's y and z axes: OpenCV camera axes <-> OpenGL camera axes (it is its own inverse).
+OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def opengl_c2w(w2c: np.ndarray) -> np.ndarray:
+    """World-to-camera poses (OpenCV axes) [...,3|4,4] -> camera-to-world with OpenGL camera axes
+    [...,4,4]: nerfstudio's ``transform_matrix``, a three.js camera's ``matrixWorld``."""
+    return invert_pose(w2c) @ OPENGL_FROM_OPENCV
+
+
+def w2c_from_opengl_c2w(c2w: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`opengl_c2w`: OpenGL camera-to-world [...,3|4,4] -> our w2c [...,4,4]."""
+    return invert_pose(to_4x4(c2w) @ OPENGL_FROM_OPENCV)
 
 
 def perturb_w2c(w2c: np.ndarray, rot_deg: tuple[float, float], centre_offset: float,

@@ -42,6 +42,19 @@ def trainer_from_checkpoint(path: Path, views: Views, device: str = "cpu") -> Tr
     return t
 
 
+def field_vertex_colours(trainer: Trainer, vertices: np.ndarray, normals: np.ndarray, chunk: int = 65536) -> np.ndarray:
+    """uint8 [V,3]: the field's colour at each vertex [V,3] seen head-on (view direction = -normal,
+    normals [V,3] unit): one field evaluation per vertex, no rendering."""
+    out = np.zeros((len(vertices), 3), np.uint8)
+    with torch.no_grad():
+        for a in range(0, len(vertices), chunk):
+            x = torch.as_tensor(vertices[a:a + chunk], dtype=torch.float32, device=trainer.device)
+            n = torch.as_tensor(normals[a:a + chunk], dtype=torch.float32, device=trainer.device)
+            _, rgb = trainer.field(x, -n, normals=n)  # [C,3] in [0,1]
+            out[a:a + chunk] = (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+    return out
+
+
 def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=None):
     """Mesh of the trainer's SDF; culled by the given views' dilated masks and to the surface they
     see, when asked (K [N,3,3] and w2c [N,4,4] at image size hw = (H, W), the masks' size)."""

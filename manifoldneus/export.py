@@ -1,9 +1,31 @@
-"""Exports of the method's result in other tools' formats."""
+"""Exports of the method's result in other tools' formats.
+
+* COLMAP text model (:func:`write_colmap_text`; pycolmap, COLMAP, most NeRF/GS tools read it);
+* nerfstudio's ``transforms.json`` (:func:`write_transforms_json`, read back by
+  :func:`read_transforms_json`): camera-to-world poses with OpenGL camera axes
+  (:func:`manifoldneus.cameras.opengl_c2w`), intrinsics per frame, image paths relative to the file;
+* the mesh as PLY and as binary glTF (``.glb``: browsers, Blender, three.js), with vertex colours;
+* ``world_from_model.json``: the similarity from the method's unit-sphere frame to the frame of the
+  exports (:func:`write_frame`), so that any result of the pipeline can be brought into it.
+
+Image file names are ``<view name>.png`` everywhere (:func:`image_filename`).
+"""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
+
+from manifoldneus import cameras
+
+TRANSFORMS = "transforms.json"
+FRAME = "world_from_model.json"
+
+
+def image_filename(name: str) -> str:
+    """The file name of a view's image in every export (and in the reference stage's COLMAP run)."""
+    return f"{name}.png"
 
 
 def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None) -> None:
@@ -18,11 +40,81 @@ def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width
         if not valid[i]:
             continue
         k = K[i]
-        cams.append(f"{i + 1} PINHOLE {width} {height} {k[0, 0]:.9g} {k[1, 1]:.9g} {k[0, 2]:.9g} {k[1, 2]:.9g}")
+        cams.append(f"{i + 1} PINHOLE {width} {height} {k[0, 0]:.17g} {k[1, 1]:.17g} {k[0, 2]:.17g} {k[1, 2]:.17g}")
         x, y, z, w = Rotation.from_matrix(w2c[i][:3, :3]).as_quat()
         t = w2c[i][:3, 3]
-        imgs.append(f"{i + 1} {w:.12g} {x:.12g} {y:.12g} {z:.12g} {t[0]:.12g} {t[1]:.12g} {t[2]:.12g} {i + 1} {name}.png")
+        imgs.append(f"{i + 1} {w:.17g} {x:.17g} {y:.17g} {z:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} {i + 1} "
+                    f"{image_filename(name)}")
         imgs.append("")
     (folder / "cameras.txt").write_text("\n".join(cams) + "\n")
     (folder / "images.txt").write_text("\n".join(imgs) + "\n")
     (folder / "points3D.txt").write_text("# no points: poses only\n")
+
+
+def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None,
+                          image_dir: str = "images", mask_dir: str | None = None) -> dict:
+    """nerfstudio's ``transforms.json`` (its ``nerfstudio-data`` layout) for the ``valid`` views:
+    per frame ``file_path`` (relative to the file), pinhole intrinsics ``fl_x fl_y cx cy w h`` in
+    pixels (pixel centres at +0.5, as COLMAP and nerfstudio) and ``transform_matrix``, the
+    camera-to-world pose with OpenGL camera axes. Returns what it wrote."""
+    valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
+    c2w = cameras.opengl_c2w(w2c)  # [N,4,4]
+    frames = []
+    for i in np.flatnonzero(valid):
+        k = K[i]
+        frame = {"file_path": f"{image_dir}/{image_filename(names[i])}",
+                 "fl_x": float(k[0, 0]), "fl_y": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
+                 "w": int(width), "h": int(height), "transform_matrix": c2w[i].tolist()}
+        if mask_dir is not None:
+            frame["mask_path"] = f"{mask_dir}/{image_filename(names[i])}"
+        frames.append(frame)
+    out = {"camera_model": "OPENCV", "frames": frames}
+    Path(path).write_text(json.dumps(out, indent=1) + "\n")
+    return out
+
+
+def read_transforms_json(path: Path) -> dict:
+    """A ``transforms.json`` (nerfstudio's layout; intrinsics per frame or shared at the top level)
+    in this project's conventions: ``files`` (paths as written), ``K`` [N,3,3], ``w2c`` [N,4,4]
+    (OpenCV camera axes), ``size`` [N,2] (w, h)."""
+    meta = json.loads(Path(path).read_text())
+
+    def get(frame: dict, key: str):
+        value = frame.get(key, meta.get(key))
+        if value is None:
+            raise ValueError(f"{path}: frame {frame.get('file_path')!r} has no {key!r} (nor does the file)")
+        return float(value)
+
+    frames = meta["frames"]
+    K = np.array([[[get(f, "fl_x"), 0.0, get(f, "cx")], [0.0, get(f, "fl_y"), get(f, "cy")], [0.0, 0.0, 1.0]]
+                  for f in frames]).reshape(-1, 3, 3)
+    c2w = np.array([f["transform_matrix"] for f in frames], np.float64).reshape(-1, 4, 4)
+    return {"files": [f["file_path"] for f in frames], "K": K, "w2c": cameras.w2c_from_opengl_c2w(c2w),
+            "size": np.array([[get(f, "w"), get(f, "h")] for f in frames]).reshape(-1, 2).astype(int)}
+
+
+def write_mesh(mesh, folder: Path, stem: str = "mesh") -> None:
+    """``<stem>.ply`` and ``<stem>.glb`` (binary glTF; vertex colours as COLOR_0 when the mesh has them)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh.export(folder / f"{stem}.ply")
+    mesh.export(folder / f"{stem}.glb", file_type="glb")
+
+
+def write_frame(path: Path, world_from_model: np.ndarray, frame: str, units: str, how: str) -> dict:
+    """``world_from_model.json``: the 4x4 similarity ``y = s R x + t`` taking the method's frame
+    (the poses and mesh of the ``successors``/``mesh`` stages) to the exports' frame, as a matrix
+    and as (s, R, t), with a word on which frame that is and how the similarity was found."""
+    s, R, t = cameras.sim3_from_matrix(world_from_model)
+    out = {"world_from_model": np.asarray(world_from_model, np.float64).tolist(), "s": s, "R": R.tolist(),
+           "t": t.tolist(), "frame": frame, "units": units, "how": how,
+           "convention": "y = s R x + t maps a point of the method's frame to this frame; poses map with "
+                         "manifoldneus.cameras.transform_w2c(w2c, s, R, t)"}
+    Path(path).write_text(json.dumps(out, indent=1) + "\n")
+    return out
+
+
+def read_frame(path: Path) -> dict:
+    """:func:`write_frame`'s file, ``world_from_model`` as a [4,4] array."""
+    out = json.loads(Path(path).read_text())
+    out["world_from_model"] = np.asarray(out["world_from_model"], np.float64)
+    return out

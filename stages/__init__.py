@@ -23,10 +23,12 @@ STAGES = [
     "successors",
     "mesh",
     "evaluate",
+    "export",
 ]
 
-# The only stages allowed to list `ground_truth` upstream: evaluation, and references labelled as such.
-GROUND_TRUTH_READERS = {"evaluate_poses", "evaluate", "reference_surface"}
+# The only stages allowed to list `ground_truth` upstream: evaluation, references labelled as such, and
+# the export, which takes only the input's world frame from it (stages/export.py).
+GROUND_TRUTH_READERS = {"evaluate_poses", "evaluate", "reference_surface", "export"}
 
 # Parameter sections used by several stages (a stage's own section is its module's `Params`).
 SHARED_SECTIONS = {

@@ -22,6 +22,28 @@ SHARED_DATA = scenes.default_data_root()
 needs_dtu = pytest.mark.skipif(not (SHARED_DATA / "dtu" / "scan24").is_dir(), reason="shared DTU data absent")
 
 
+# The whole pipeline on a tiny synthetic scene (CPU, about two minutes on a loaded 2-core machine).
+TINY = [
+    "ingest.synthetic_views=20", "ingest.synthetic_resolution=128", "ingest.synthetic_surface_points=4000",
+    "reference_surface.iters=40", "train.image_size=32", "train.batch_rays=256", "train.warmup=5", "train.log_every=10",
+    "anchors.iters=40", "successors.iters=30", "successors.final_iters=40",
+    "field.grid_levels=3", "field.grid_max_res=32", "render.cache_res=32",
+    "meshing.resolution=48", "evaluate.chamfer_points=4000", "schedule.successors_per_round=4",
+]
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """(artifacts folder, run report) of one TINY run, shared by the test modules. Tests that run
+    other parameters into it move some stages' `current` pointers: read a result through
+    `Store.lineage` of its last stage, which names the versions it was computed from."""
+    import pipeline
+
+    artifacts = tmp_path_factory.mktemp("e2e") / "artifacts"
+    report = pipeline.run("synthetic", overrides=TINY, artifacts=artifacts)
+    return artifacts, report
+
+
 @pytest.fixture(scope="session")
 def tiny_synthetic():
     from manifoldneus import synthetic

@@ -5,24 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from conftest import TINY
+
 import pipeline
 from manifoldneus.config import ParamError
 from manifoldneus import io
-
-TINY = [
-    "ingest.synthetic_views=20", "ingest.synthetic_resolution=128", "ingest.synthetic_surface_points=4000",
-    "reference_surface.iters=40", "train.image_size=32", "train.batch_rays=256", "train.warmup=5", "train.log_every=10",
-    "anchors.iters=40", "successors.iters=30", "successors.final_iters=40",
-    "field.grid_levels=3", "field.grid_max_res=32", "render.cache_res=32",
-    "meshing.resolution=48", "evaluate.chamfer_points=4000", "schedule.successors_per_round=4",
-]
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    artifacts = tmp_path_factory.mktemp("e2e") / "artifacts"
-    report = pipeline.run("synthetic", overrides=TINY, artifacts=artifacts)
-    return artifacts, report
 
 
 def current(artifacts, stage, preset=None):
@@ -69,7 +56,7 @@ def test_alpha_change_reruns_schedule_and_after_only(tiny_run):
     artifacts, _ = tiny_run
     st = pipeline.status("synthetic", overrides=TINY + ["schedule.alpha=0.3"], artifacts=artifacts)
     stale = {s for s, (state, _) in st.items() if state != "fresh"}
-    assert stale == {"schedule", "anchors", "successors", "mesh", "evaluate"}
+    assert stale == {"schedule", "anchors", "successors", "mesh", "evaluate", "export"}
 
 
 def test_each_value_has_one_home(tiny_run):

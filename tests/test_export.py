@@ -1,22 +1,148 @@
-"""COLMAP text export (manifoldneus/export.py) read back by pycolmap."""
+"""Exports (manifoldneus/export.py, stages/export.py): the COLMAP text model read back by pycolmap,
+nerfstudio's transforms.json read back by export.read_transforms_json, both to 1e-9; the OpenGL
+camera convention; and the export stage's result on the tiny synthetic run, in the input's frame."""
+import json
+
 import numpy as np
 import pytest
 
-from manifoldneus import cameras, export
+import pipeline
+from manifoldneus import artifacts, cameras, export, io
+
+
+def random_cameras(n, seed=0, spread=3.0):
+    rng = np.random.default_rng(seed)
+    eyes = rng.normal(size=(n, 3)) * spread
+    w2c = np.stack([cameras.look_at_w2c(e, rng.normal(size=3) * 0.1, np.array([0.0, 0.0, 1.0])) for e in eyes])
+    K = np.stack([np.array([[300.0 + i, 0, 96.5], [0, 310.0, 64.25], [0, 0, 1]]) for i in range(n)])
+    return K, w2c
+
+
+def colmap_poses(folder):
+    """name -> (w2c [4,4], K [3,3], (w, h)) of a COLMAP model, read by pycolmap."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(folder))
+    out = {}
+    for im in rec.images.values():
+        cam = rec.cameras[im.camera_id]
+        out[im.name] = (cameras.to_4x4(np.asarray(im.cam_from_world().matrix())), cam.calibration_matrix(),
+                        (cam.width, cam.height))
+    return out
 
 
 def test_colmap_text_model_reads_back_with_the_same_cameras(tmp_path):
-    pycolmap = pytest.importorskip("pycolmap")
-    rng = np.random.default_rng(0)
-    eyes = rng.normal(size=(3, 3)) * 3
-    w2c = np.stack([cameras.look_at_w2c(e, np.zeros(3), np.array([0.0, 0.0, 1.0])) for e in eyes])
-    K = np.stack([np.array([[300.0 + i, 0, 96.5], [0, 310.0, 64.25], [0, 0, 1]]) for i in range(3)])
+    pytest.importorskip("pycolmap")
+    K, w2c = random_cameras(3)
+    w2c[:, :3, 3] *= 250.0  # a world in millimetres: the text must keep 1e-9 at that size too
     export.write_colmap_text(tmp_path, ["a", "b", "c"], K, w2c, 192, 128, valid=[True, False, True])
-    rec = pycolmap.Reconstruction(str(tmp_path))
-    assert sorted(im.name for im in rec.images.values()) == ["a.png", "c.png"]
-    for im in rec.images.values():
-        i = im.image_id - 1
-        np.testing.assert_allclose(cameras.to_4x4(np.asarray(im.cam_from_world().matrix())), w2c[i], atol=1e-9)
-        cam = rec.cameras[im.camera_id]
-        assert (cam.width, cam.height) == (192, 128)
-        np.testing.assert_allclose(cam.calibration_matrix(), K[i], atol=1e-9)
+    back = colmap_poses(tmp_path)
+    assert sorted(back) == ["a.png", "c.png"]
+    for i, name in ((0, "a.png"), (2, "c.png")):
+        np.testing.assert_allclose(back[name][0], w2c[i], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(back[name][1], K[i], rtol=0, atol=1e-9)
+        assert back[name][2] == (192, 128)
+
+
+def test_transforms_json_round_trip_and_its_opengl_convention(tmp_path):
+    K, w2c = random_cameras(5, seed=1)
+    path = tmp_path / "transforms.json"
+    export.write_transforms_json(path, [f"v{i}" for i in range(5)], K, w2c, 192, 128, valid=[1, 1, 0, 1, 1],
+                                 mask_dir="masks")
+    back = export.read_transforms_json(path)
+    keep = [0, 1, 3, 4]
+    assert back["files"] == [f"images/v{i}.png" for i in keep]
+    np.testing.assert_allclose(back["w2c"], w2c[keep], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(back["K"], K[keep], rtol=0, atol=1e-12)
+    assert back["size"].tolist() == [[192, 128]] * 4
+    frame = json.loads(path.read_text())["frames"][0]
+    assert frame["mask_path"] == "masks/v0.png"
+    # nerfstudio's matrix: camera-to-world with OpenGL axes, so the camera looks along its -z column
+    # and its +y column is the image's up (the OpenCV camera's -y)
+    c2w = np.array(frame["transform_matrix"])
+    np.testing.assert_allclose(c2w[:3, 3], cameras.camera_centers(w2c[0]), atol=1e-12)
+    np.testing.assert_allclose(-c2w[:3, 2], w2c[0, 2, :3], atol=1e-12)
+    np.testing.assert_allclose(c2w[:3, 1], -w2c[0, 1, :3], atol=1e-12)
+
+
+def test_a_reader_takes_shared_intrinsics_from_the_top_level(tmp_path):
+    K, w2c = random_cameras(2, seed=2)
+    path = tmp_path / "transforms.json"
+    written = export.write_transforms_json(path, ["a", "b"], K[[0, 0]], w2c, 192, 128)
+    for frame in written["frames"]:
+        for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+            written[key] = frame.pop(key)
+    path.write_text(json.dumps(written))
+    back = export.read_transforms_json(path)
+    np.testing.assert_allclose(back["K"], K[[0, 0]], atol=1e-12)
+    del written["fl_x"]
+    path.write_text(json.dumps(written))
+    with pytest.raises(ValueError, match="has no 'fl_x'"):
+        export.read_transforms_json(path)
+
+
+def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
+    """The tiny run's exports: the COLMAP model (read by pycolmap) and transforms.json give the same
+    poses to 1e-9, namely the final poses mapped by world_from_model.json; in the synthetic scene
+    that frame is its ground truth's, so the exported centres lie near the true cameras."""
+    pytest.importorskip("pycolmap")
+    import trimesh
+
+    artifacts_dir, _ = tiny_run
+    versions = pipeline.Store(artifacts_dir, "synthetic").lineage("export")
+    out = versions["export"]
+    final = artifacts.load_round(versions["successors"] / "final")
+    placed = final["placed"].astype(bool)
+    names = io.load_json(versions["ingest"] / "views.json")["names"]
+    frame = export.read_frame(out / export.FRAME)
+    assert frame["frame"] == "input" and frame["units"] == "unit"
+    expected = cameras.transform_w2c(final["w2c"], *cameras.sim3_from_matrix(frame["world_from_model"]))
+
+    from_colmap = colmap_poses(out / "colmap")
+    from_json = export.read_transforms_json(out / export.TRANSFORMS)
+    assert sorted(from_colmap) == sorted(f"{names[i]}.png" for i in np.flatnonzero(placed))
+    assert from_json["files"] == [f"images/{names[i]}.png" for i in np.flatnonzero(placed)]
+    for k, i in enumerate(np.flatnonzero(placed)):
+        np.testing.assert_allclose(from_colmap[f"{names[i]}.png"][0], from_json["w2c"][k], rtol=0, atol=1e-9)
+        # the rounds' poses are float32: exported, their rotations are made exactly orthonormal
+        np.testing.assert_allclose(from_json["w2c"][k], expected[i], rtol=0, atol=1e-6)
+        assert (out / from_json["files"][k]).is_file()
+    gt = io.load_arrays(versions["ground_truth"] / "poses.zarr", ["w2c"])["w2c"]
+    spread = np.linalg.norm(cameras.camera_centers(gt) - cameras.camera_centers(gt).mean(0), axis=1).mean()
+    centre_error = np.linalg.norm(cameras.camera_centers(expected[placed]) - cameras.camera_centers(gt[placed]), axis=1)
+    assert centre_error.mean() < 0.05 * spread
+
+    # the mesh: the mesh stage's, mapped into the same frame, with the field's vertex colours
+    ply, glb = trimesh.load(out / "mesh.ply", process=False), trimesh.load(out / "mesh.glb", force="mesh", process=False)
+    model = trimesh.load(versions["mesh"] / "mesh.ply", process=False)
+    np.testing.assert_allclose(ply.vertices, cameras.transform_points(frame["world_from_model"], model.vertices),
+                               atol=1e-5)
+    assert len(glb.faces) == len(ply.faces) == len(model.faces) > 0
+    np.testing.assert_allclose(np.sort(glb.vertices, 0), np.sort(ply.vertices, 0), atol=1e-5)
+    colours = np.asarray(ply.visual.vertex_colors)[:, :3]
+    assert ply.visual.kind == "vertex" and colours.std() > 0  # not one flat colour
+
+
+def test_the_export_frame_undoes_the_alignment_and_the_normalisation(tmp_path):
+    """world_from_model: the method's cameras are the input's under a known similarity and the input's
+    own normalisation (DTU-like: mm, offset); the frame found maps them exactly onto the input's world."""
+    from stages.export import world_from_model
+
+    _, w2c_world = random_cameras(6, seed=3, spread=300.0)  # the input's cameras, in "mm"
+    normalization = cameras.sim3_matrix(250.0, np.eye(3), np.array([10.0, -40.0, 600.0]))  # unit sphere -> mm
+    gt_norm = cameras.transform_w2c(w2c_world, *cameras.sim3_from_matrix(np.linalg.inv(normalization)))
+    model_from_gt = (0.7, cameras.rotvec_to_matrix([0.3, -0.2, 0.5])[0], np.array([0.1, 0.2, -0.3]))
+    w2c_model = cameras.transform_w2c(gt_norm, *model_from_gt)  # what the method found, in its own gauge
+    io.save_arrays(tmp_path / "poses.zarr", {"w2c": gt_norm, "normalization": normalization}, chunk_first=False)
+    io.save_json(tmp_path / "gt.json", {"has_poses": True, "units": "mm"})
+    valid = np.ones(6, bool)
+    M, frame, units, how = world_from_model(tmp_path, w2c_model, valid, "input")
+    assert (frame, units) == ("input", "mm") and "6 final camera centres" in how
+    back = cameras.transform_w2c(w2c_model, *cameras.sim3_from_matrix(M))
+    np.testing.assert_allclose(back, w2c_world, atol=1e-9)
+    # asked for the method's frame, or too few views, or an input without cameras: identity
+    assert world_from_model(tmp_path, w2c_model, valid, "model")[1] == "model"
+    assert world_from_model(tmp_path, w2c_model, np.arange(6) < 2, "input")[1] == "model"
+    io.save_json(tmp_path / "gt.json", {"has_poses": False})
+    M, frame, _, how = world_from_model(tmp_path, w2c_model, valid, "input")
+    assert frame == "model" and np.array_equal(M, np.eye(4)) and "no cameras of its own" in how

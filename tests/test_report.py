@@ -47,9 +47,15 @@ def test_page_references_existing_pngs(built_report):
     text = page.read_text()
     images = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
     assert len(images) >= 10 and all(name.endswith(".png") and (page.parent / name).is_file() for name in images)
-    for section in ("Schedule", "Aligned cameras", "Pose error per round", "Loss curves", "Mesh previews",
+    for section in ("Viewer", "Schedule", "Aligned cameras", "Pose error per round", "Loss curves", "Mesh previews",
                     "Held-out views", "Easy-view bias"):
         assert f"## {section}" in text
+    # the viewer pages of the two systems that ran, beside the report; the missing one says how to run it
+    pages = re.findall(r"\]\(([^)]+\.html)\)", text)
+    assert pages == ["manifoldneus_viewer.html", "neus_barf_viewer.html"]
+    assert all('id="scene-data"' in (page.parent / name).read_text() for name in pages)
+    assert "NeuS-COLMAP viewer: not available (stage export: `python pipeline.py run --scene synthetic --preset " \
+           "neus-colmap`)" in text
 
 
 def test_pose_error_row_per_round_and_missing_system(built_report):

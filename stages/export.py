@@ -1,0 +1,109 @@
+"""export: the result in other tools' formats, in the input's world frame.
+
+Writes, for the views with a final pose: the COLMAP text model (``colmap/``), nerfstudio's
+``transforms.json`` (OpenGL camera-to-world, intrinsics per frame), the images they name
+(``images/<view>.png``, the ingested images that K refers to; ``masks/`` where the scene has masks),
+and the final mesh as ``mesh.ply`` and ``mesh.glb`` with vertex colours from the final field.
+
+Frame (``export.frame``): ``input`` is the world of the input's own cameras where the scene has
+them (DTU's ``cameras*.npz`` in mm, a COLMAP model's world, the synthetic scene's frame): the
+similarity fitted on the final camera centres onto those cameras (Umeyama, as ``evaluate``), then
+the input's unit-sphere normalisation undone. That is why this stage reads ``ground_truth``; only
+this frame is taken from it, nothing of the method. A scene without cameras of its own (a plain
+photo folder) has no input world: the exports stay in the method's unit-sphere frame. Either way
+``world_from_model.json`` holds the similarity from the method's frame to the exports' frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from manifoldneus import artifacts, cameras, evaluation, export, io, posefree
+from manifoldneus.config import param
+
+
+@dataclass
+class Params:
+    """Section `export` of params.yaml."""
+
+    frame: str = param("input", "Frame of the exports: input (the input cameras' world, where the scene has "
+                       "cameras; else the method's) | model (the method's unit-sphere frame)",
+                       choices=["input", "model"])
+    images: bool = param(True, "Write the ingested images (and masks) that transforms.json and the COLMAP model name")
+    vertex_colours: bool = param(True, "Colour the mesh's vertices with the final field's colour seen head-on")
+
+
+UPSTREAM = ("ingest", "ground_truth", "successors", "mesh")
+SECTIONS = ("export", "run")
+OUTPUTS = ("colmap", export.TRANSFORMS, "mesh.ply", "mesh.glb", export.FRAME)
+
+
+def world_from_model(gt_dir, w2c: np.ndarray, valid: np.ndarray, frame: str) -> tuple[np.ndarray, str, str, str]:
+    """(4x4 similarity method -> export frame, frame name, units, how it was found)."""
+    gt_meta = io.load_json(gt_dir / "gt.json")
+    if frame == "model":
+        return np.eye(4), "model", "model units", "export.frame = model"
+    if not gt_meta.get("has_poses"):
+        return np.eye(4), "model", "model units", "the input has no cameras of its own, so no world frame"
+    if valid.sum() < 3:
+        return np.eye(4), "model", "model units", f"only {int(valid.sum())} final views: too few for a Sim3"
+    gt = io.load_arrays(gt_dir / "poses.zarr", ["w2c", "normalization"])
+    s, R, t = cameras.align_centres(w2c, gt["w2c"], valid)
+    M = gt["normalization"] @ cameras.sim3_matrix(s, R, t)
+    how = (f"Sim3 (Umeyama) of the {int(valid.sum())} final camera centres onto the input's cameras "
+           f"(scale {s:.6g}), then the input's normalisation to the unit sphere undone")
+    return M, "input", gt_meta["units"], how
+
+
+def rigid(w2c: np.ndarray) -> np.ndarray:
+    """Poses [N,4,4] with each rotation replaced by its nearest rotation matrix: the rounds store float32
+    poses, orthonormal to 1e-7 only, and a COLMAP model (quaternions) can hold nothing but rotations;
+    so both exports hold the same poses."""
+    from scipy.spatial.transform import Rotation
+
+    out = cameras.to_4x4(w2c)
+    out[:, :3, :3] = Rotation.from_matrix(out[:, :3, :3]).as_matrix()
+    return out
+
+
+def run(ctx) -> None:
+    p: Params = ctx.params
+    final_dir = ctx.input("successors") / "final"
+    final = artifacts.load_round(final_dir)
+    w2c, placed = final["w2c"], final["placed"].astype(bool)
+    valid = placed & final["optimised"].astype(bool)
+    views = artifacts.load_views(ctx.input("ingest"), w2c)
+    M, frame, units, how = world_from_model(ctx.input("ground_truth"), w2c, valid, p.frame)
+    ctx.log.info("exports in the %s frame (%s): %s", frame, units, how)
+    s, R, t = cameras.sim3_from_matrix(M)
+    w2c_world = rigid(cameras.transform_w2c(w2c, s, R, t))  # [N,4,4]
+
+    import trimesh
+
+    mesh = trimesh.load(ctx.input("mesh") / "mesh.ply", process=False)
+    if p.vertex_colours and len(mesh.faces):
+        ids = np.flatnonzero(final["optimised"].astype(bool))
+        trainer = evaluation.trainer_from_checkpoint(final_dir / "model.pt", posefree.subset_views(views, ids, w2c),
+                                                     ctx.section("run").device)
+        colours = evaluation.field_vertex_colours(trainer, np.array(mesh.vertices), np.array(mesh.vertex_normals))
+        mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=colours)
+    mesh.apply_transform(M)
+    export.write_mesh(mesh, ctx.out)
+
+    h, w = views.images.shape[1:3]
+    export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c_world, w, h, valid=placed)
+    mask_dir = "masks" if p.images and views.masks is not None else None
+    export.write_transforms_json(ctx.out / export.TRANSFORMS, views.names, views.K, w2c_world, w, h, valid=placed,
+                                 mask_dir=mask_dir)
+    if p.images:
+        for folder, stack in (("images", views.images), (mask_dir, views.masks)):
+            if folder is None:
+                continue
+            (ctx.out / folder).mkdir()
+            for i in np.flatnonzero(placed):
+                io.save_png(ctx.out / folder / export.image_filename(views.names[i]), stack[i])
+    export.write_frame(ctx.out / export.FRAME, M, frame, units, how)
+    ctx.metrics.update(frame=frame, units=units, scale=s, views_exported=int(placed.sum()),
+                       vertices=int(len(mesh.vertices)), faces=int(len(mesh.faces)),
+                       vertex_colours=bool(p.vertex_colours and len(mesh.faces)))

@@ -1,0 +1,109 @@
+"""The viewer page (manifoldneus/viewer.py, `pipeline.py view`): its geometry helpers, its data
+against the tiny run's artifacts, and the page rendered in headless Chromium."""
+import json
+import re
+
+import numpy as np
+import pytest
+
+import pipeline
+from manifoldneus import artifacts, cameras, io, viewer
+
+
+def test_decimate_keeps_the_surface_within_a_cell_and_averages_colours():
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=5)  # 20480 faces, radius 1
+    colours = np.where(sphere.vertices[:, :1] > 0, [[255, 0, 0]], [[0, 0, 255]]).astype(np.uint8)
+    v, f, c = viewer.decimate(np.asarray(sphere.vertices), np.asarray(sphere.faces), colours, 2000)
+    assert 500 < len(f) <= 2000 and f.max() < len(v)
+    radius = np.linalg.norm(v[np.unique(f)], axis=1)
+    assert np.abs(radius - 1).max() < 0.1
+    # a vertex far from the x = 0 border keeps its side's colour
+    assert (c[v[:, 0] > 0.2] == [255, 0, 0]).all() and (c[v[:, 0] < -0.2] == [0, 0, 255]).all()
+    same = viewer.decimate(np.asarray(sphere.vertices), np.asarray(sphere.faces), colours, 10**6)
+    assert same[1] is sphere.faces or np.array_equal(same[1], sphere.faces)
+
+
+def test_frustum_corners_project_onto_the_image_corners():
+    K = np.array([[300.0, 0, 100.0], [0, 320.0, 60.0], [0, 0, 1]])
+    w2c = cameras.look_at_w2c(np.array([2.0, -1.0, 0.5]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    pts = viewer.frustum_points(K[None], w2c[None], 200, 120, depth=0.3)[0]  # [5,3]
+    np.testing.assert_allclose(pts[0], cameras.camera_centers(w2c), atol=1e-12)
+    in_camera = pts[1:] @ w2c[:3, :3].T + w2c[:3, 3]
+    np.testing.assert_allclose(in_camera[:, 2], 0.3, atol=1e-12)
+    np.testing.assert_allclose(cameras.project_points(K, in_camera), [[0, 0], [200, 0], [200, 120], [0, 120]],
+                               atol=1e-9)
+
+
+def test_view_of_a_scene_without_a_run_says_what_to_run(tmp_path, capsys):
+    assert pipeline.main(["view", "--scene", "synthetic", "--artifacts", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "has no exported result to view" in err and "run: python pipeline.py run --scene synthetic" in err
+
+
+def page_data(path):
+    text = path.read_text()
+    return json.loads(re.search(r'<script type="application/json" id="scene-data">(.*?)</script>', text, re.S)
+                      .group(1)), text
+
+
+@pytest.fixture(scope="module")
+def page(tiny_run, tmp_path_factory):
+    """The tiny run's page, and the run's own numbers it must show (from the versions it was built from)."""
+    artifacts_dir, _ = tiny_run
+    path = tmp_path_factory.mktemp("viewer") / "viewer.html"
+    assert pipeline.main(["view", "--scene", "synthetic", "--artifacts", str(artifacts_dir), "--out", str(path)]) == 0
+    versions = pipeline.Store(artifacts_dir, "synthetic").lineage("export")
+    final = artifacts.load_round(versions["successors"] / "final")
+    schedule = io.load_json(versions["schedule"] / "schedule.json")
+    run = {"optimised": int((final["placed"] & final["optimised"]).sum()), "held_out": len(schedule["held_out_views"]),
+           "views": len(schedule["views"]), "rounds": 2 + len(list(versions["successors"].glob("round_*")))}
+    return path, run
+
+
+def test_the_page_holds_the_run_and_needs_no_network(page):
+    path, run = page
+    data, text = page_data(path)
+    assert data["counts"] == {"views": run["views"], "optimised": run["optimised"], "held_out": run["held_out"],
+                              "held_out_drawn": run["held_out"]}
+    assert len(data["rounds"]) == run["rounds"] and data["rounds"][-1]["n_posed"] == run["optimised"]
+    assert [r["label"] for r in data["rounds"][:2]] == ["initial", "anchors"]
+    assert {c["role"] for c in data["cameras"]} >= {"anchor", "round1", "held out"}
+    # a GT camera and an error for every camera of the final round; held-out views drawn at their GT pose
+    final = data["rounds"][-1]
+    posed = [i for i, f in enumerate(final["frusta"]) if f is not None]
+    assert all(final["errors"][i] is not None and final["errors"][i][0] < 5.0 for i in posed)
+    assert all(data["gt"]["frusta"][c["view"]] for c in data["cameras"] if c["role"] == "held out")
+    assert data["mesh"]["n_faces"] > 0 and data["reference"]["n_points"] > 0
+    # offline: no script or stylesheet from anywhere, three.js inlined with its licence
+    assert not re.search(r"<script[^>]+src=|<link[^>]+href=|https?://(?!www\.w3\.org)", text.split("<details")[0])
+    assert '"three":"data:text/javascript;base64,' in text.replace(" ", "") and "MIT License" in text
+
+
+def test_decimated_page_stays_small(tiny_run, tmp_path):
+    artifacts_dir, _ = tiny_run
+    path, held = pipeline.view("synthetic", artifacts_dir, out=tmp_path / "small.html", max_faces=1000)
+    data, _ = page_data(path)
+    assert held["faces"] == data["mesh"]["n_faces"] <= 1000 < held["faces_full"]
+
+
+def test_the_page_renders_in_headless_chromium(page, tmp_path):
+    if viewer.find_browser() is None:
+        pytest.skip("no Chromium on this machine (bash .ci/run installs the Debian package chromium)")
+    from PIL import Image
+
+    path, run = page
+    shown = viewer.render_in_browser(path, tmp_path / "viewer.png", size=(1000, 700))
+    attrs = shown["attributes"]
+    assert "errors" not in attrs, attrs["errors"]
+    assert [m for m in shown["console"] if re.search(r"error|uncaught|warning", m, re.I)] == []
+    assert attrs["viewer-state"] == "ready"
+    assert int(attrs["cameras-drawn"]) == run["optimised"] and int(attrs["held-out-drawn"]) == run["held_out"]
+    # the mesh is drawn: the middle of the picture is mostly not background (cameras are thin lines)
+    image = np.asarray(Image.open(tmp_path / "viewer.png").convert("RGB")).astype(int)
+    h, w = image.shape[:2]
+    centre = image[int(0.4 * h):int(0.6 * h), int(0.42 * w):int(0.58 * w)]
+    background = np.array([0x1E, 0x21, 0x27])
+    drawn = (np.abs(centre - background).max(-1) > 16).mean()
+    assert drawn > 0.5, f"only {drawn:.0%} of the centre is drawn"
