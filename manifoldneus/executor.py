@@ -9,7 +9,8 @@ outcome with an error, named on its progress line; the others go on.
 
 Executors (``--executor``): ``in-process`` (the default: one run after the other, here),
 ``dask`` (a LocalCluster on this machine), ``dask://HOST:PORT`` (an existing scheduler),
-``slurm`` (dask-jobqueue's SLURMCluster, configured in dask's ``jobqueue.slurm`` config).
+``slurm`` or ``slurm:CONFIG`` (dask-jobqueue's SLURMCluster, configured in dask's ``jobqueue.slurm``
+or ``jobqueue.CONFIG`` config).
 Workers run on the artifacts root given once, which every worker and the client must see at the
 same path (README: "Running on a cluster"). Runs with ``run.device=cuda`` ask for a ``GPU``
 worker resource on a scheduler or SLURM cluster, so a mixed cluster places them on GPU workers.
@@ -28,7 +29,8 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
-EXECUTORS = "in-process (default) | dask (a LocalCluster here) | dask://HOST:PORT (an existing scheduler) | slurm"
+EXECUTORS = ("in-process (default) | dask (a LocalCluster here) | dask://HOST:PORT (an existing scheduler) | "
+             "slurm[:CONFIG] (dask-jobqueue's SLURMCluster, from dask's jobqueue.slurm config or jobqueue.CONFIG)")
 GIB_PER_RUN = 3  # a scan24 run peaks at 2.4 GiB: what a LocalCluster leaves each worker
 
 
@@ -65,7 +67,7 @@ def add_arguments(parser) -> None:
 def _executor(text: str) -> str:
     import argparse
 
-    if text not in ("in-process", "dask", "slurm") and not text.startswith("dask://"):
+    if text not in ("in-process", "dask", "slurm") and not text.startswith(("dask://", "slurm:")):
         raise argparse.ArgumentTypeError(f"unknown executor {text!r}: {EXECUTORS}")
     return text
 
@@ -258,10 +260,11 @@ def _client(executor: str, workers: int | None, runs: int):
                   f"dashboard {client.dashboard_link}", file=sys.stderr)
             yield client, True
         return
-    if executor == "slurm":
+    if executor.startswith("slurm"):
         from dask_jobqueue import SLURMCluster  # optional: pip install dask-jobqueue
 
-        cluster = SLURMCluster()  # cores, memory, queue, ... from dask's config, jobqueue.slurm (README)
+        # cores, memory, queue, ... from dask's config: jobqueue.slurm, or jobqueue.CONFIG (README)
+        cluster = SLURMCluster(config_name=executor.partition(":")[2] or None)
         cluster.scale(workers or runs)
         gpu_resources = True
     else:
