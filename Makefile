@@ -1,5 +1,7 @@
 # manifoldneus: `make all SCENE=scan24`, `make test`. Every target sets up .venv when needed.
+# Several scenes: `make all SCENES="scan24 scan24_idr synthetic" ARGS="--executor dask"` (README: "Running on a cluster").
 SCENE ?= synthetic
+SCENES ?= $(SCENE)
 STAGE ?=
 TABLE ?=
 VALUES ?=
@@ -16,7 +18,7 @@ setup: .venv/.installed
 	touch $@
 
 all: setup
-	$(PY) pipeline.py run --scene $(SCENE) $(ARGS)
+	$(PY) pipeline.py run $(foreach s,$(SCENES),--scene $(s)) $(ARGS)
 
 stage: setup
 	@test -n "$(STAGE)" || (echo "usage: make stage STAGE=<name> SCENE=<scene>"; exit 2)
@@ -32,9 +34,10 @@ view: setup
 test: setup
 	$(PY) -m pytest -q tests
 
-# the bench, then README's Results regenerated from the latest bench JSON of each scene
+# the bench (scan24 unless SCENE or SCENES is given), then README's Results regenerated from the latest bench JSON of each scene
+BENCH_SCENES = $(if $(filter command line,$(origin SCENES)),$(SCENES),$(if $(filter command line,$(origin SCENE)),$(SCENE),scan24))
 bench: setup
-	$(PY) bench/bench.py --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) $(ARGS)
+	$(PY) bench/bench.py $(foreach s,$(BENCH_SCENES),--scene $(s)) $(ARGS)
 	$(PY) bench/results_md.py
 
 # do the joint rounds refine their initialisation? synthetic, scan24, scan24_idr x 3 seeds (README: "Refinement")

@@ -37,6 +37,7 @@ import json
 import logging
 import os
 import shutil
+import socket
 import sys
 import threading
 import time
@@ -56,7 +57,7 @@ import yaml  # noqa: E402
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
-from manifoldneus import config  # noqa: E402
+from manifoldneus import config, executor  # noqa: E402
 from manifoldneus.config import ParamError  # noqa: E402
 from manifoldneus.scenes import SceneError, resolve_scene  # noqa: E402
 
@@ -353,7 +354,7 @@ class Store:
         return fp if self.is_complete(stage, fp) else None
 
     def set_current(self, stage: str, fingerprint: str) -> None:
-        tmp = self.stage_dir(stage) / f".current-{os.getpid()}"
+        tmp = self.stage_dir(stage) / f".current-{_process()}"
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         os.symlink(fingerprint, tmp)
@@ -404,30 +405,62 @@ class Store:
             todo.extend(self.manifest(name, fp).get("upstream", {}).items())
         return out
 
-    @contextlib.contextmanager
+    # Locks are flock(2) on files in the artifacts tree, so they hold across processes and, on a
+    # shared filesystem that supports them (README: "Running on a cluster"), across hosts.
     def lock(self):
-        self.scene_dir.mkdir(parents=True, exist_ok=True)
-        path = self.scene_dir / ".lock"
-        with open(path, "a+") as f:
-            try:
-                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                f.seek(0)
-                holder = f.read().strip() or "?"
-                raise PipelineError(
-                    f"another run holds the lock on {self.scene_dir} (pid {holder}); wait for it to finish "
-                    f"or stop it. Two runs on one scene would overwrite each other's 'current' pointers."
-                ) from None
-            f.seek(0)
-            f.truncate()
-            f.write(str(os.getpid()))
-            f.flush()
-            try:
-                yield
-            finally:
-                f.seek(0)
-                f.truncate()
-                fcntl.flock(f, fcntl.LOCK_UN)
+        """Exclusive, for gc: refused while a run of the scene is in progress (gc deletes versions
+        that a run may be using before its pointers name them)."""
+        return _flock(self.scene_dir / ".lock", fcntl.LOCK_EX,
+                      busy=f"a run on {self.scene_dir} is in progress; gc deletes versions a run may be using: "
+                           "wait for it to finish")
+
+    def in_use(self):
+        """Shared, held by a run for its whole length: runs of one scene go side by side, gc waits."""
+        return _flock(self.scene_dir / ".lock", fcntl.LOCK_SH, waiting=f"waiting for gc on {self.scene_dir}")
+
+    def computing(self, stage: str, fingerprint: str):
+        """Exclusive lock of one version: two runs never compute it both; the second waits, then
+        finds it complete."""
+        return _flock(self.scene_dir / ".locks" / f"{stage}-{fingerprint}", fcntl.LOCK_EX,
+                      waiting=f"[{stage}] another run is computing {fingerprint}; waiting for it")
+
+    def moving_pointers(self):
+        """Exclusive and brief: a run moves all its pointers at once, so they name one run's versions."""
+        return _flock(self.scene_dir / ".locks" / "pointers", fcntl.LOCK_EX)
+
+
+def _process() -> str:
+    """Names this process's temporary files; with the host, as a shared tree sees several hosts' pids."""
+    return f"{socket.gethostname()}-{os.getpid()}"
+
+
+@contextlib.contextmanager
+def _flock(path: Path, how: int, busy: str | None = None, waiting: str | None = None):
+    """Hold flock `how` on `path`. When another process holds it: raise `busy` if given, else say
+    `waiting` (if given) and wait."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a+") as f:
+        try:
+            fcntl.flock(f, how | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if busy:
+                raise PipelineError(busy) from None
+            if waiting:
+                print(waiting, file=sys.stderr)
+            fcntl.flock(f, how)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+class RunReport(dict):
+    """What `run` did: stage -> 'computed' | 'reused', and ``fingerprints``: stage -> the version it
+    used. Read a run's results by these, not by `current`: concurrent runs of a scene move the pointers."""
+
+    def __init__(self):
+        super().__init__()
+        self.fingerprints: dict[str, str] = {}
 
 
 # ---------------------------------------------------------------------------- running
@@ -534,7 +567,7 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
     """Run one stage into a temporary folder, then rename it into place."""
     fp = fps[stage.name]["fingerprint"]
     final = store.version_dir(stage.name, fp)
-    tmp = store.stage_dir(stage.name) / f".tmp-{fp}-{os.getpid()}"
+    tmp = store.stage_dir(stage.name) / f".tmp-{fp}-{_process()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     log, handlers = _stage_logger(stage.name, tmp / LOG)
@@ -595,13 +628,16 @@ def _refuse_damaged(store: Store, stage: str, fingerprint: str, scene_name: str)
                             f"python pipeline.py run --scene {scene_name} --until {stage} --force {stage}")
 
 
-def select(stages: dict[str, Stage], until: str | None, only: str | None) -> list[str]:
+def select(stages: dict[str, Stage], until: str | None, only: str | list[str] | None) -> list[str]:
+    """The stages a run brings up to date, in DAG order: all, those up to `until`, or `only` (one
+    stage, or several whose upstream are among them or computed)."""
     names = list(stages)
-    for flag, value in (("--until", until), ("--only", only)):
+    only_list = [only] if isinstance(only, str) else list(only or [])
+    for flag, value in (("--until", until), *(("--only", o) for o in only_list)):
         if value is not None and value not in stages:
             raise PipelineError(f"unknown stage {value!r} for {flag} (stages: {', '.join(names)})")
-    if only:
-        return [only]
+    if only_list:
+        return [n for n in names if n in only_list]
     if until:
         return names[: names.index(until) + 1]
     return names
@@ -610,7 +646,7 @@ def select(stages: dict[str, Stage], until: str | None, only: str | None) -> lis
 def run(
     scene_name: str,
     until: str | None = None,
-    only: str | None = None,
+    only: str | list[str] | None = None,
     overrides: list[str] = (),
     force: list[str] = (),
     profile: str | None = None,
@@ -618,8 +654,11 @@ def run(
     artifacts: Path = DEFAULT_ARTIFACTS,
     params_path: Path = DEFAULT_PARAMS,
     data_root: Path | None = None,
-) -> dict[str, str]:
-    """Bring the selected stages up to date. Returns stage -> 'computed' | 'reused'."""
+) -> RunReport:
+    """Bring the selected stages up to date. Returns stage -> 'computed' | 'reused' and the versions used.
+
+    Runs of one scene may go side by side (processes, hosts on a shared tree): each version is
+    computed under its own lock, and the pointers move together at the end."""
     stages = load_stages()
     for f in force:
         if f not in stages:
@@ -629,7 +668,7 @@ def run(
     store = Store(artifacts, scene.name, preset)
     own = own_ingredients(stages, resolved, scene)
     selected = select(stages, until, only)
-    report: dict[str, str] = {}
+    report = RunReport()
     intact: set[tuple[str, str]] = set()  # versions whose files were checked in this run
 
     def refuse_damaged(stage: str, fingerprint: str) -> None:
@@ -637,53 +676,62 @@ def run(
             _refuse_damaged(store, stage, fingerprint, scene_name)
             intact.add((stage, fingerprint))
 
-    with store.lock():
-        for name in selected:
-            stage = stages[name]
-            fps = chain_fingerprints(stages, own, store)  # upstream stages just run enter by their content
-            fp = fps[name]["fingerprint"]
-            for up in stage.upstream:
-                if up not in selected and not store.is_complete(up, fps[up]["fingerprint"]):
-                    raise PipelineError(
-                        f"stage {name} needs {up} with the current parameters, which has not been computed; "
-                        f"run: python pipeline.py run --scene {scene_name} --until {name}"
-                    )
-                refuse_damaged(up, fps[up]["fingerprint"])
-            if store.is_complete(name, fp) and name not in force:
-                refuse_damaged(name, fp)
-                store.set_current(name, fp)
-                report[name] = "reused"
-                print(f"[{name}] up to date ({fp})", file=sys.stderr)
-                continue
-            print(f"[{name}] running ({fp}) ...", file=sys.stderr)
-            execute(stage, resolved, store, fps, scene)
-            store.set_current(name, fp)
-            manifest = store.manifest(name, fp)
-            report[name] = "computed"
-            print(f"[{name}] done in {manifest['wall_seconds']:.1f} s, peak {manifest['peak_rss_mib']:.0f} MiB",
-                  file=sys.stderr)
+    def needs_computing(name: str, fp: str) -> bool:
+        return name in force or not store.is_complete(name, fp)
+
+    with store.in_use():
+        try:
+            for name in selected:
+                stage = stages[name]
+                fps = chain_fingerprints(stages, own, store)  # upstream stages just run enter by their content
+                fp = fps[name]["fingerprint"]
+                for up in stage.upstream:
+                    if up not in selected and not store.is_complete(up, fps[up]["fingerprint"]):
+                        raise PipelineError(
+                            f"stage {name} needs {up} with the current parameters, which has not been computed; "
+                            f"run: python pipeline.py run --scene {scene_name} --until {name}"
+                        )
+                    refuse_damaged(up, fps[up]["fingerprint"])
+                if needs_computing(name, fp):
+                    with store.computing(name, fp):
+                        if needs_computing(name, fp):  # else another run computed it while this one waited
+                            print(f"[{name}] running ({fp}) ...", file=sys.stderr)
+                            execute(stage, resolved, store, fps, scene)
+                            manifest = store.manifest(name, fp)
+                            report[name] = "computed"
+                            print(f"[{name}] done in {manifest['wall_seconds']:.1f} s, peak "
+                                  f"{manifest['peak_rss_mib']:.0f} MiB", file=sys.stderr)
+                if name not in report:
+                    refuse_damaged(name, fp)
+                    report[name] = "reused"
+                    print(f"[{name}] up to date ({fp})", file=sys.stderr)
+                report.fingerprints[name] = fp
+        finally:  # also after a failure: the stages done so far are current
+            with store.moving_pointers():
+                for name, fp in report.fingerprints.items():
+                    store.set_current(name, fp)
     return report
 
 
 # ---------------------------------------------------------------------------- inspection
 
 
-def run_summary(scene_name: str, report: dict[str, str], artifacts=DEFAULT_ARTIFACTS, data_root=None,
+def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS, data_root=None,
                 preset=None) -> str:
     """What a run did and where its results are: per stage ran / cached and its time, the final
     poses' and held-out views' scores where the scene has ground truth, and the paths to open."""
     store = Store(artifacts, resolve_scene(scene_name, data_root).name, preset)
+    version = report.fingerprints
     lines, total = [], 0.0
     for name, how in report.items():
-        m = store.manifest(name) or {}
-        seconds = m.get("wall_seconds", 0.0) if how == "computed" else 0.0
+        seconds = store.manifest(name, version[name])["wall_seconds"] if how == "computed" else 0.0
         total += seconds
         lines.append(f"  {name:<18} {'ran' if how == 'computed' else 'cached':<7}"
                      + (f"{seconds:8.1f} s" if how == "computed" else ""))
     ran = sum(how == "computed" for how in report.values())
     out = [f"{store.scene_dir.name}: {len(report)} stages, {ran} ran ({total:.0f} s), {len(report) - ran} cached", *lines]
-    if "evaluate" in report and store.current("evaluate"):
-        ev = json.loads((store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json").read_text())
+    if "evaluate" in report:
+        ev = json.loads((store.version_dir("evaluate", version["evaluate"]) / "evaluation.json").read_text())
         if ev.get("poses"):
             final = ev["poses"][-1]
             rot, centre = final["summary"]["rot_err_deg"], final["summary"].get("center_err_units", {})
@@ -697,8 +745,8 @@ def run_summary(scene_name: str, report: dict[str, str], artifacts=DEFAULT_ARTIF
         geo = ev.get("geometry", {})
         if geo.get("chamfer_units") is not None:
             out.append(f"surface: Chamfer {geo['chamfer_units']:.3g} {geo.get('units', '')} to {geo.get('reference', 'the reference')}")
-    if "mesh" in report and store.current("mesh"):
-        mesh_dir = store.version_dir("mesh", store.current("mesh"))
+    if "mesh" in report:
+        mesh_dir = store.version_dir("mesh", version["mesh"])
         out += [f"mesh:    {mesh_dir / 'mesh.ply'}", f"cameras: {mesh_dir / 'colmap'} (COLMAP text model)"]
     if "export" in report and store.current("export"):
         export_dir = store.version_dir("export", store.current("export"))
@@ -875,6 +923,7 @@ def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None) -> li
                         continue
                     shutil.rmtree(version, ignore_errors=True)
                     removed.append(version)
+            shutil.rmtree(scene_dir / ".locks", ignore_errors=True)  # no run holds one: gc has the scene
     return removed
 
 
@@ -886,8 +935,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     sub = p.add_subparsers(dest="command", required=True)
 
-    def common(sp, params=True):
-        sp.add_argument("--scene", default="synthetic", help="scene name (synthetic, synthetic-<seed>, scan24, ...) or a folder")
+    def common(sp, params=True, scenes=False):
+        sp.add_argument("--scene", default=None if scenes else "synthetic", action="append" if scenes else "store",
+                        help="scene name (synthetic, synthetic-<seed>, scan24, ...) or a folder"
+                             + ("; repeat it to run several scenes (default synthetic)" if scenes else ""))
         sp.add_argument("--data-root", type=Path, default=None, help="data root (default $MANIFOLDNEUS_DATA or ../shared/data)")
         sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS)
         if params:
@@ -897,7 +948,8 @@ def _parser() -> argparse.ArgumentParser:
             sp.add_argument("--preset", default=None, help="a named preset from params.yaml (e.g. neus-barf)")
 
     sp = sub.add_parser("run", help="bring stages up to date")
-    common(sp)
+    common(sp, scenes=True)
+    executor.add_arguments(sp)
     g = sp.add_mutually_exclusive_group()
     g.add_argument("--until", help="run every stage up to and including this one")
     g.add_argument("--only", help="run just this stage (its upstream must be up to date)")
@@ -961,11 +1013,28 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def run_scenes(args) -> int:
+    """`run` of one scene here, as before; of several (or with --executor), one task per scene."""
+    scenes = list(dict.fromkeys(args.scene or ["synthetic"]))
+    kwargs = dict(until=args.until, only=args.only, overrides=args.overrides, force=args.force, profile=args.profile,
+                  preset=args.preset, artifacts=args.artifacts, params_path=args.params, data_root=args.data_root)
+    if len(scenes) == 1 and args.executor == "in-process":
+        print(run_summary(scenes[0], run(scenes[0], **kwargs), args.artifacts, args.data_root, args.preset))
+        return 0
+    outcomes = []
+    for outcome in executor.run_all([executor.RunSpec(s, s, kwargs) for s in scenes], args.executor, args.workers):
+        outcomes.append(outcome)
+        if outcome.report is not None and not outcome.error:
+            print(run_summary(outcome.name, outcome.report, args.artifacts, args.data_root, args.preset) + "\n")
+    failed = executor.failures(outcomes)
+    if failed:
+        print(f"error: {failed}", file=sys.stderr)
+    return 1 if failed else 0
+
+
 def _command(args) -> int:
     if args.command == "run":
-        report = run(args.scene, args.until, args.only, args.overrides, args.force, args.profile, args.preset,
-                     args.artifacts, args.params, args.data_root)
-        print(run_summary(args.scene, report, args.artifacts, args.data_root, args.preset))
+        return run_scenes(args)
     elif args.command == "status":
         for name, (state, reasons) in status(args.scene, args.overrides, args.profile, args.preset,
                                              args.artifacts, args.params, args.data_root).items():

@@ -1,14 +1,16 @@
 #!/usr/bin/env python
 """Benchmark: ManifoldNeuS, its NeuS baselines and the pycolmap reference on one scene, in one sitting.
 
-    python bench/bench.py --scene scan24 [--systems manifoldneus,neus-barf,neus-colmap,pycolmap]
+    python bench/bench.py --scene scan24 [--scene S ...] [--systems manifoldneus,neus-barf,neus-colmap,pycolmap]
                           [--set section.key=value ...] [--until STAGE] [--force STAGE | --force-all]
-                          [--artifacts DIR] [--out-dir DIR]
+                          [--artifacts DIR] [--out-dir DIR] [--executor dask|dask://HOST:PORT|slurm] [--workers N]
 
 A system is a pipeline preset (ManifoldNeuS: the default parameters) plus the stages it is charged
-with. All systems run in this one process, one preset after the other; versions are shared by
+with. Each scene and preset is one run: by default in this process, one after the other; with
+``--executor`` side by side on Dask workers (manifoldneus/executor.py). Versions are shared by
 fingerprint, so a stage common to several systems (ingest, the front-end, the reference) is
-computed once and the wall time in its manifest is counted for each system that uses it.
+computed once, before the runs fan out, and the wall time in its manifest is counted for each
+system that uses it.
 Errors come from each preset's `evaluate` artifact (pycolmap: `evaluate_poses`).
 
 Prints a per-system table (ratios against pycolmap in columns of their own, since absolute times
@@ -37,7 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import pipeline  # noqa: E402
-from manifoldneus import io  # noqa: E402
+from manifoldneus import executor, io  # noqa: E402
 
 FRONT_END = ("features", "matching", "covisibility", "spectral", "schedule")
 NEURAL = ("anchors", "successors", "mesh")
@@ -75,16 +77,7 @@ class Run:
     params: dict             # section -> resolved parameters of the run
     report: dict[str, str]   # stage -> "computed" | "reused" (by this run)
     rows: dict[str, dict]    # stage -> manifest summary (see `collect`) + computed_this_sitting
-
-
-def plan(scene: str, overrides: list[str], preset: str | None, artifacts: Path) -> tuple[dict, dict[str, str]]:
-    """The resolved parameters and the stage -> fingerprint that `pipeline.run` will use (for the
-    stages whose upstream versions exist already: the others' depend on what their upstream writes)."""
-    stages = pipeline.load_stages()
-    resolved = pipeline.resolve_params(stages, overrides=overrides, preset=preset)
-    scene_ref = pipeline.resolve_scene(scene)
-    fps = pipeline.compute_fingerprints(stages, resolved, scene_ref, pipeline.Store(artifacts, scene_ref.name, preset))
-    return resolved, {name: f["fingerprint"] for name, f in fps.items()}
+    error: str | None = None  # the run failed: its rows are empty
 
 
 def last_stage_per_preset(systems: list[System], until: str | None) -> dict[str | None, str]:
@@ -99,36 +92,40 @@ def last_stage_per_preset(systems: list[System], until: str | None) -> dict[str 
     return out
 
 
-def collect(scene: str, artifacts: Path, preset: str | None = None, stages=None) -> dict[str, dict]:
-    """Stage -> fingerprint, wall / CPU seconds, peak RSS and metrics of the preset's current versions
-    (all stages that have one, or just `stages`)."""
+def collect(scene: str, artifacts: Path, preset: str | None = None, stages=None,
+            versions: dict[str, str] | None = None) -> dict[str, dict]:
+    """Stage -> fingerprint, wall / CPU seconds, peak RSS and metrics of the versions a run used
+    (`versions`: stage -> fingerprint), else of the preset's current versions (all stages that
+    have one, or just `stages`)."""
     store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name, preset)
     rows = {}
     for name in stages if stages is not None else pipeline.load_stages():
-        m = store.manifest(name)
+        m = store.manifest(name, (versions or {}).get(name))
         if m is not None:
             rows[name] = {k: m[k] for k in ("fingerprint", "wall_seconds", "cpu_seconds", "peak_rss_mib", "metrics")}
     return rows
 
 
-def run_systems(scene: str, systems: list[System], overrides: list[str], until: str | None, force: list[str],
-                artifacts: Path) -> list[Run]:
-    """Bring every selected system up to date, one preset after the other, in this process.
-
-    A forced stage is recomputed once per fingerprint: a version that two presets share (the
-    front-end) is not recomputed for the second one, so its time is still of this sitting."""
-    computed: set[tuple[str, str]] = set()  # (stage, fingerprint) computed in this sitting
-    runs = []
-    for preset, last in last_stage_per_preset(systems, until).items():
-        params, fps = plan(scene, overrides, preset, artifacts)
-        report = pipeline.run(scene, until=last, overrides=overrides, preset=preset, artifacts=artifacts,
-                              force=[s for s in force if (s, fps[s]) not in computed])
-        rows = collect(scene, artifacts, preset, stages=report)
-        computed |= {(s, rows[s]["fingerprint"]) for s, how in report.items() if how == "computed"}
-        runs.append(Run(preset, params, report, rows))
-    for run in runs:  # a later preset reuses what an earlier one computed: still a time of this sitting
-        for stage, row in run.rows.items():
+def run_systems(scenes: list[str], systems: list[System], overrides: list[str], until: str | None, force: list[str],
+                artifacts: Path, executor_name: str = "in-process", workers: int | None = None) -> dict[str, list[Run]]:
+    """Bring every selected system of every scene up to date: one run per scene and preset, on
+    `executor_name`. Versions that runs share (the front-end, the reference) are computed once,
+    forced stages included, before the runs fan out. Returns scene -> its runs."""
+    stages = pipeline.load_stages()
+    last = last_stage_per_preset(systems, until)
+    specs = [executor.RunSpec(f"{scene} {preset or 'default'}", scene,
+                              dict(until=stage, overrides=overrides, preset=preset, artifacts=artifacts, force=force))
+             for scene in scenes for preset, stage in last.items()]
+    outcomes = {o.name: o for o in executor.run_all(specs, executor_name, workers)}
+    computed = set().union(*(o.computed for o in outcomes.values()))  # (stage, fingerprint) of this sitting
+    runs: dict[str, list[Run]] = {}
+    for spec in specs:
+        preset, outcome = spec.args["preset"], outcomes[spec.name]
+        params = pipeline.resolve_params(stages, overrides=overrides, preset=preset)
+        rows = {} if outcome.error else collect(spec.scene, artifacts, preset, outcome.report, outcome.report.fingerprints)
+        for stage, row in rows.items():  # a later preset reuses what an earlier one computed: still of this sitting
             row["computed_this_sitting"] = (stage, row["fingerprint"]) in computed
+        runs.setdefault(spec.scene, []).append(Run(preset, params, dict(outcome.report or {}), rows, outcome.error))
     return runs
 
 
@@ -191,6 +188,7 @@ def system_result(system: System, run: Run, store: pipeline.Store) -> dict:
     return {
         "label": system.label,
         "preset": system.preset,
+        **({"error": run.error} if run.error else {}),
         "scored_by": system.scored_by,
         "stages": stages,
         "missing_stages": [s for s in charged if s not in rows],
@@ -255,26 +253,32 @@ def machine() -> dict:
             "load_average_at_start": [round(x, 2) for x in os.getloadavg()]}
 
 
-def run_bench(scene: str, systems: list[System], overrides=(), until=None, force=(),
-              artifacts=pipeline.DEFAULT_ARTIFACTS) -> dict:
-    """Run the systems and return the JSON-ready result."""
+def run_benches(scenes: list[str], systems: list[System], overrides=(), until=None, force=(),
+                artifacts=pipeline.DEFAULT_ARTIFACTS, executor_name: str = "in-process", workers: int | None = None
+                ) -> dict[str, dict]:
+    """Run the systems on every scene; scene -> its JSON-ready result. With several scenes the
+    sitting's total wall time and machine load are the whole sitting's."""
     started, host = time.time(), machine()
-    runs = run_systems(scene, systems, list(overrides), until, list(force), artifacts)
-    by_preset = {run.preset: run for run in runs}
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
-    results = {s.key: system_result(s, by_preset[s.preset], store) for s in systems}
-    add_ratios(results)
-    return {
-        "scene": pipeline.resolve_scene(scene).name,
-        "date": dt.datetime.fromtimestamp(started).isoformat(timespec="seconds"),
-        "machine": host,
-        "overrides": list(overrides),
-        "until": until,
-        "total_wall_seconds": round(time.time() - started, 1),
-        "systems": results,
-        "stages": stage_rows(runs),
-        "summary": summarise(next((r for r in runs if r.preset is None), runs[0]).rows),  # MaVOS front-end
-    }
+    runs = run_systems(scenes, systems, list(overrides), until, list(force), artifacts, executor_name, workers)
+    results = {}
+    for scene, scene_runs in runs.items():
+        by_preset = {run.preset: run for run in scene_runs}
+        store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
+        systems_results = {s.key: system_result(s, by_preset[s.preset], store) for s in systems}
+        add_ratios(systems_results)
+        results[scene] = {
+            "scene": pipeline.resolve_scene(scene).name,
+            "date": dt.datetime.fromtimestamp(started).isoformat(timespec="seconds"),
+            "machine": host,
+            "executor": {"name": executor_name, "workers": workers, "scenes": list(scenes)},
+            "overrides": list(overrides),
+            "until": until,
+            "total_wall_seconds": round(time.time() - started, 1),
+            "systems": systems_results,
+            "stages": stage_rows(scene_runs),
+            "summary": summarise(by_preset.get(None, scene_runs[0]).rows),  # MaVOS front-end
+        }
+    return results
 
 
 def result_path(result: dict, out_dir: Path) -> Path:
@@ -414,7 +418,7 @@ def parse_systems(text: str) -> list[System]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scene", default="scan24")
+    ap.add_argument("--scene", action="append", default=None, help="scan24 (default), ...; repeat it for several")
     ap.add_argument("--systems", type=parse_systems, default=list(SYSTEMS.values()),
                     help=f"comma-separated subset of {','.join(SYSTEMS)} (default: all)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
@@ -423,20 +427,27 @@ def main(argv=None) -> int:
     ap.add_argument("--force", action="append", default=[], metavar="STAGE", help="recompute this stage")
     ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT_DIR, help="results go to OUT_DIR/<scene>/<date>.json")
+    executor.add_arguments(ap)
     args = ap.parse_args(argv)
     force = list(pipeline.load_stages()) if args.force_all else args.force
     try:
-        result = run_bench(args.scene, args.systems, args.overrides, args.until, force, args.artifacts)
+        results = run_benches(list(dict.fromkeys(args.scene or ["scan24"])), args.systems, args.overrides, args.until,
+                              force, args.artifacts, args.executor, args.workers)
     except (pipeline.PipelineError, pipeline.ParamError, pipeline.SceneError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    path = write_result(result, args.out_dir)
-    print(f"## {result['scene']}: systems\n\n{comparison_markdown(result)}\n")
-    print(f"## {result['scene']}: every version used\n\n{stages_table(result['stages'])}\n")
-    for k, v in result["summary"].items():
-        print(f"- {k}: {v}")
-    print(f"\nwrote {path}")
-    return 0
+    for result in results.values():
+        path = write_result(result, args.out_dir)
+        print(f"## {result['scene']}: systems\n\n{comparison_markdown(result)}\n")
+        print(f"## {result['scene']}: every version used\n\n{stages_table(result['stages'])}\n")
+        for k, v in result["summary"].items():
+            print(f"- {k}: {v}")
+        print(f"\nwrote {path}\n")
+    failed = sorted({f"{r['scene']} {s['preset'] or 'default'}: {s['error']}"
+                     for r in results.values() for s in r["systems"].values() if "error" in s})
+    if failed:
+        print(f"error: {len(failed)} run(s) failed: {'; '.join(failed)}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

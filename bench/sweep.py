@@ -3,6 +3,7 @@
 
     python bench/sweep.py TABLE [--scene scan24] [--values V ...] [--set section.key=value ...]
                           [--profile fast|paper] [--artifacts DIR] [--out DIR] [--tag NAME]
+                          [--executor in-process|dask|dask://HOST:PORT|slurm] [--workers N]
 
 TABLE (default values in brackets; ``--values`` picks others):
   A3      alpha of MaVOS                          [1.0 0.85 0.65 0.5 0.35]
@@ -16,6 +17,8 @@ Each setting is one ``pipeline.run`` with the setting's overrides on top of ``--
 runner's cache reruns only the stages whose parameters the setting touches (an alpha sweep
 reuses ingest .. spectral, the pycolmap reference and the GT-pose reference surface). Every
 setting runs up to ``evaluate``, whose ``evaluation.json`` holds the pose errors per round.
+With ``--executor dask`` (or a scheduler, or SLURM) the settings run side by side, after the
+stages they share have been computed once; a setting that fails is a row that says so.
 A6 rows also retrain the GT-pose reference surface (it shares the ``loss`` section; add
 ``--set reference_surface.enabled=false`` when only the poses matter). Sparse rows hold out
 no view (``split.holdout_every=0``): the supplement's 25 / 17 / 10 views are all inputs.
@@ -48,7 +51,7 @@ import numpy as np  # noqa: E402
 from scipy.stats import rankdata  # noqa: E402
 
 import pipeline  # noqa: E402
-from manifoldneus import io  # noqa: E402
+from manifoldneus import executor, io  # noqa: E402
 from manifoldneus.config import ParamError  # noqa: E402
 from manifoldneus.scenes import SceneError  # noqa: E402
 
@@ -267,7 +270,12 @@ def settings_for(table: str, values: list[str] | None = None) -> list[Setting]:
     if table not in TABLES:
         raise SweepError(f"unknown table {table!r} (tables: {', '.join(TABLES)})")
     t = TABLES[table]
-    return [t.setting(str(v)) for v in (values or t.defaults)]
+    settings = [t.setting(str(v)) for v in (values or t.defaults)]
+    labels = [s.label for s in settings]
+    twice = sorted({label for label in labels if labels.count(label) > 1})
+    if twice:
+        raise SweepError(f"{table}: {', '.join(twice)} given twice")
+    return settings
 
 
 # ---------------------------------------------------------------------------- running
@@ -292,15 +300,10 @@ def _round_errors(evaluation: dict) -> list[dict]:
             for r in evaluation.get("poses", []) if "summary" in r]  # rounds of < 3 views are not scored
 
 
-def run_setting(setting: Setting, scene: str, overrides: list[str], artifacts: Path, profile=None,
-                data_root=None) -> dict:
-    """One row: run the pipeline with the setting's overrides, read its evaluation back."""
-    overrides = [*overrides, *setting.overrides]  # later keys win: the setting's own
-    started = time.time()
-    report = pipeline.run(scene, overrides=overrides, profile=profile, artifacts=artifacts, data_root=data_root)
-    wall = time.time() - started
+def setting_row(setting: Setting, outcome: executor.Outcome, scene: str, artifacts: Path, data_root=None) -> dict:
+    """One row: the evaluation of the setting's run, read by the versions it used."""
     store = pipeline.Store(artifacts, pipeline.resolve_scene(scene, data_root).name)
-    manifests = upstream_manifests(store, "evaluate", store.current("evaluate"))
+    manifests = upstream_manifests(store, "evaluate", outcome.report.fingerprints["evaluate"])
     versions = {name: store.version_dir(name, m["fingerprint"]) for name, m in manifests.items()}
     gt = io.load_json(versions["ground_truth"] / "gt.json")
     schedule = io.load_json(versions["schedule"] / "schedule.json")
@@ -318,8 +321,8 @@ def run_setting(setting: Setting, scene: str, overrides: list[str], artifacts: P
         "schedule": {k: schedule[k] for k in ("n_anchors", "round_sizes", "anchors_connected")},
         "priors": {k: views[k] for k in ("has_mono_depth", "has_mono_normal")},
         "units": gt.get("units"), "units_per_scene_unit": gt.get("units_per_scene_unit"),
-        "stages": report,
-        "wall_seconds": round(wall, 1),
+        "stages": dict(outcome.report),
+        "wall_seconds": outcome.wall_seconds,
         # what this row costs from an empty cache: the compute times of the versions it rests on
         "cost_seconds": round(sum(m["wall_seconds"] for m in manifests.values()), 1),
         "fingerprints": {name: m["fingerprint"] for name, m in manifests.items()},
@@ -413,8 +416,10 @@ def markdown(result: dict) -> str:
 
 def run_sweep(table: str, scene: str = "scan24", values: list[str] | None = None, overrides: list[str] = (),
               artifacts: Path = pipeline.DEFAULT_ARTIFACTS, profile: str | None = None, data_root=None,
-              out_root: Path = ROOT / "bench", tag: str = "") -> dict:
-    """Run every setting of a table, print its markdown table, write the JSON; returns the result."""
+              out_root: Path = ROOT / "bench", tag: str = "", executor_name: str = "in-process",
+              workers: int | None = None) -> dict:
+    """Run every setting of a table, print its markdown table, write the JSON; returns the result.
+    Each setting is one run of `executor_name` (module docstring of manifoldneus/executor.py)."""
     settings = settings_for(table, values)
     stages = pipeline.load_stages()
     for s in settings:  # every override is checked before hours of computing start
@@ -427,23 +432,23 @@ def run_sweep(table: str, scene: str = "scan24", values: list[str] | None = None
         "table": table, "title": TABLES[table].title + (f" [{tag}]" if tag else ""), "tag": tag, "scene": scene, "profile": resolved["_profile"],
         "date": dt.datetime.now().isoformat(timespec="seconds"),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+        "executor": executor_name, "workers": workers,
         "overrides": list(overrides), "artifacts": str(artifacts), "paper_source": TABLES[table].source,
         "paper": {label: dict(zip((c.key for c in COLUMNS), v)) for label, v in TABLES[table].paper.items()},
         "settings": [],
     }
     started = time.time()
-    for i, s in enumerate(settings, 1):
-        print(f"[sweep {table}] {s.label} ({i}/{len(settings)}): {' '.join(s.overrides) or 'as configured'}",
-              file=sys.stderr)
-        try:
-            row = run_setting(s, scene, list(overrides), artifacts, profile, data_root)
-        except (pipeline.PipelineError, ParamError, SceneError):
-            raise  # the runner's own refusals (a held lock, bad input) would fail every setting alike
-        except Exception as e:  # noqa: BLE001 - a stage that fails in one setting must not lose the others' hours
-            print(f"[sweep {table}] {s.label} failed: {e}", file=sys.stderr)
-            row = {"value": s.value, "label": s.label, "overrides": list(s.overrides),
-                   "error": f"{type(e).__name__}: {e}"}
-        result["settings"].append(row)
+    # later keys win: the setting's own
+    specs = [executor.RunSpec(s.label, scene, dict(overrides=[*overrides, *s.overrides], profile=profile,
+                                                   artifacts=artifacts, data_root=data_root)) for s in settings]
+    rows = {}
+    for outcome in executor.run_all(specs, executor_name, workers):
+        if outcome.preparation:
+            continue
+        s = next(s for s in settings if s.label == outcome.name)
+        rows[s.label] = setting_row(s, outcome, scene, artifacts, data_root) if not outcome.error else {
+            "value": s.value, "label": s.label, "overrides": list(s.overrides), "error": outcome.error}
+        result["settings"] = [rows[s.label] for s in settings if s.label in rows]  # the table's order
         result["total_wall_seconds"] = round(time.time() - started, 1)
         result["markdown"] = markdown(result)
         io.save_json(out, result)
@@ -470,13 +475,14 @@ def main(argv=None) -> int:
                     "OUT/<scene>/sweep_<TABLE>_<tag>_<date>.json, and the title says it")
     ap.add_argument("--all-rounds", action="store_true",
                     help="run every successor round (default: stop after round 1, all the tables read; half the time)")
+    executor.add_arguments(ap)
     args = ap.parse_args(argv)
     # round 1 then is the last round run; final_iters=0 keeps it the length of any successor round
     stop = ["successors.max_rounds=1", "successors.final_iters=0"]
     overrides = args.overrides if args.all_rounds else [*stop, *args.overrides]
     try:
         result = run_sweep(args.table, args.scene, args.values, overrides, args.artifacts, args.profile,
-                           args.data_root, args.out, args.tag)
+                           args.data_root, args.out, args.tag, args.executor, args.workers)
     except (SweepError, ParamError, SceneError, pipeline.PipelineError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

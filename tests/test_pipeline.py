@@ -71,11 +71,14 @@ def test_failure_mid_write_publishes_nothing_and_rerun_succeeds(artifacts, monke
     assert manifest["metrics"]["n_views"] == 6 and manifest["peak_rss_mib"] > 0
 
 
-def test_lock_refuses_a_second_run(artifacts):
+def test_gc_refuses_while_a_run_is_in_progress(artifacts):
     store = pipeline.Store(artifacts, "synthetic")
-    with store.lock():
-        with pytest.raises(pipeline.PipelineError, match="another run holds the lock"):
-            pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    with store.in_use():  # as a run in another process holds it
+        with pytest.raises(pipeline.PipelineError, match="a run on .* is in progress"):
+            pipeline.gc(artifacts, "synthetic")
+        # runs of one scene go side by side: each version has its own lock
+        assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {
+            "ingest": "computed"}
 
 
 def test_truncated_manifest_is_a_missing_version(artifacts):
@@ -367,7 +370,7 @@ def test_every_expected_failure_is_one_line(artifacts, capsys, monkeypatch):
     def read_only(self):
         raise PermissionError(13, "Permission denied", str(artifacts / "synthetic" / ".lock"))
 
-    monkeypatch.setattr(pipeline.Store, "lock", read_only)
+    monkeypatch.setattr(pipeline.Store, "in_use", read_only)
     assert pipeline.main(args) == 2
     assert "error: no permission to write" in capsys.readouterr().err
 
