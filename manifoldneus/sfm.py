@@ -144,6 +144,9 @@ def mapping_options(refine: Sequence[str] = (), *, num_threads: int = 1, seed: i
     opts.ba_refine_extra_params = "radial" in refine
     opts.mapper.abs_pose_refine_focal_length = "focal" in refine
     opts.mapper.abs_pose_refine_extra_params = "radial" in refine
+    # COLMAP registers a view with >= 30 PnP inliers by default; small or sparse captures have
+    # anchors linked by fewer verified matches (the synthetic scene at every other view: 24-51)
+    opts.mapper.abs_pose_min_num_inliers = min_num_matches
     opts.mapper.filter_max_reproj_error = reproj_px
     opts.triangulation.min_angle = min_tri_angle_deg
     opts.extract_colors = False  # the database holds our features, not the images
