@@ -152,7 +152,6 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
         colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
     v, f, c = decimate(vertices, faces, colours, max_faces)
     return {
-        "title": f"{views_meta.get('source', '')}",
         "frame": {k: world_from_model[k] for k in ("frame", "units", "how")},
         "cameras": [{"view": i, "name": names[i], "role": roles[i], "round": int(schedule["views"][i]["round"])}
                     for i in range(n)],
@@ -213,8 +212,7 @@ def build_page(data: dict, title: str) -> str:
 
 def write_page(versions: dict[str, Path], path: Path, title: str, max_faces: int = MAX_FACES) -> dict:
     """Write the viewer page of one run to ``path``; returns its data's counts and sizes."""
-    data = scene_data(versions, max_faces)
-    data["title"] = title
+    data = {"title": title, **scene_data(versions, max_faces)}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(build_page(data, title))
