@@ -79,8 +79,10 @@ def run(ctx) -> None:
     w2c, placed = prev["w2c"], prev["placed"].astype(bool)
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     ctx.metrics["rounds"] = []
+    left_out: list[int] = []  # views an earlier round could not place: retried once more views are placed
     for r in range(1, n_rounds + 1):
-        new = [int(v) for v in np.flatnonzero((rounds == r) & inputs.train_mask)]
+        new = [*left_out, *(int(v) for v in np.flatnonzero((rounds == r) & inputs.train_mask))]
+        left_out = []
         # initial poses of the new views (depth PnP against the previous round's model, or the matches)
         if p.placement == "depth":
             probe = posefree.Round(ctx, inputs, np.flatnonzero(placed), w2c, np.ones(len(w2c)), iters=1, pose_lr=0.0,
@@ -104,8 +106,11 @@ def run(ctx) -> None:
                     pose, info = from_matches[v], {"method": "matches", "after": info["method"] if p.placement == "depth" else None}
             init[inputs.names[v]] = info
             if pose is None:
-                ctx.log.warning("round %d: view %s cannot be placed (no optimised neighbour); left out of the round",
-                                r, inputs.names[v])
+                why = ("COLMAP did not register it with the placed views' matches" if p.placement == "matches"
+                       else "it has no verified matches to a placed view")
+                ctx.log.warning("round %d: view %s cannot be placed (%s); left out of the round%s", r, inputs.names[v],
+                                why, ", retried in the next" if r < n_rounds else "")
+                left_out.append(v)
                 continue
             if info["method"] == "fallback":
                 ctx.log.warning("round %d: PnP failed for %s (%d inliers); starting from neighbour %s's pose", r,

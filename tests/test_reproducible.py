@@ -106,8 +106,9 @@ def test_sigkill_at_random_moments_then_rerun(first, tmp_path):
         time.sleep(delay)
         proc.send_signal(signal.SIGKILL)
         killed += proc.wait() == -signal.SIGKILL  # else it had finished before the kill
-        for stage_dir in (p for p in (root / "synthetic").iterdir() if p.is_dir()) if root.exists() else []:
-            for entry in stage_dir.iterdir():
+        for stage in pipeline.load_stages():  # the stages' folders; .locks holds lock files, not versions
+            stage_dir = store.stage_dir(stage)
+            for entry in stage_dir.iterdir() if stage_dir.is_dir() else ():
                 if not entry.name.startswith(".") and not entry.is_symlink():
                     assert store.is_complete(stage_dir.name, entry.name), f"partial version visible: {entry}"
     assert killed >= 1  # a later run resumes the earlier ones and may finish before its kill

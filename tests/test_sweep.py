@@ -93,7 +93,10 @@ def test_a7_strategies(dirs, capsys):
 def test_sparse_views(dirs, capsys):
     (every, second), _ = run(dirs, "sparse", ["1", "2"], capsys)
     assert (every["views"]["total"], second["views"]["total"]) == (20, 10)
-    assert second["views"]["first_successor_round"] > 8  # none held out (holdout_every 8 would leave 8)
+    # none held out: every view is an input (holdout_every 8 would hold views 0 and 8 out)
+    artifacts, _ = dirs
+    schedule_dir = pipeline.Store(artifacts, "synthetic").version_dir("schedule", second["fingerprints"]["schedule"])
+    assert json.loads((schedule_dir / "schedule.json").read_text())["held_out_views"] == []
     assert second["stages"]["ingest"] == second["stages"]["ground_truth"] == "computed"
 
 
