@@ -12,13 +12,14 @@ from manifoldneus import io
 from manifoldneus.train import Views
 
 
-def load_views(ingest_dir: Path, w2c: np.ndarray | None = None) -> Views:
+def load_views(ingest_dir: Path, w2c: np.ndarray | None = None, K: np.ndarray | None = None) -> Views:
     """``ingest``'s ``views.zarr`` as :class:`~manifoldneus.train.Views` (poses: ``w2c`` [N,4,4], or
-    identity placeholders: ingest never holds poses)."""
+    identity placeholders: ingest never holds poses; intrinsics: ``K`` [N,3,3], e.g. a round's, which
+    the anchors may have refined, else the ingest's)."""
     arrays = io.load_arrays(Path(ingest_dir) / "views.zarr")
     names = io.load_json(Path(ingest_dir) / "views.json")["names"]
     w2c = np.tile(np.eye(4), (len(names), 1, 1)) if w2c is None else w2c
-    return Views(arrays["images"], arrays["K"], w2c, arrays.get("masks"), arrays.get("mono_depth"),
+    return Views(arrays["images"], arrays["K"] if K is None else K, w2c, arrays.get("masks"), arrays.get("mono_depth"),
                  arrays.get("mono_normal"), names)
 
 

@@ -6,7 +6,8 @@ Each round carries the field (and background, SDF cache) over from the previous 
 its pose corrections at zero on top of the poses the previous round ended with.
 
 A round's artifact (`save_round`): ``poses.zarr`` (``w2c`` [N,4,4] for all views, identity where
-``placed`` is False; ``w2c_init`` the poses the round started from; ``pose_trace`` [T,N,4,4] and
+``placed`` is False; ``w2c_init`` the poses the round started from; ``K`` [N,3,3] the intrinsics
+they belong to; ``pose_trace`` [T,N,4,4] and
 ``pose_grad_norm`` [T,N] sampled every ``log_every`` iterations, for the easy-view-bias analysis),
 ``model.pt`` (the trainer state), ``round.json`` (views, initial-pose methods, losses, timings).
 """
@@ -35,6 +36,18 @@ class SceneInputs:
     W: np.ndarray  # [N,N] co-visibility
     schedule: dict  # arrays of the schedule stage + 'meta'
     train_mask: np.ndarray  # bool [N]: scheduled and not held out
+    intrinsics_source: str = "calibrated"  # views.json's: calibrated | given | exif | default
+
+    @property
+    def sizes(self) -> np.ndarray:
+        """[N,2] (H, W) of every view."""
+        return np.tile(self.views.images.shape[1:3], (len(self.names), 1))
+
+
+def with_intrinsics(inputs: SceneInputs, K: np.ndarray) -> SceneInputs:
+    """The inputs with the intrinsics [N,3,3] the poses belong to (the anchors' initialisation may
+    refine the ingest's; every later round reads them from the previous round's ``poses.zarr``)."""
+    return dataclasses.replace(inputs, views=dataclasses.replace(inputs.views, K=np.asarray(K)))
 
 
 def load_inputs(ctx) -> SceneInputs:
@@ -52,7 +65,7 @@ def load_inputs(ctx) -> SceneInputs:
     schedule = load_schedule(ctx.input("schedule"))
     train_mask = (schedule["round"] >= 0) & ~holdout_mask(n, ctx.section("split"))
     return SceneInputs(views, meta["names"], [f["keypoints"] for f in feats], pairs_from_matches(matches), W,
-                       schedule, train_mask)
+                       schedule, train_mask, meta.get("intrinsics_source", "calibrated"))
 
 
 def subset_views(views: Views, ids, w2c_all: np.ndarray) -> Views:
@@ -81,7 +94,8 @@ class Round:
                  pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None):
         self.ids = np.asarray(ids, int)
         self.iters = iters
-        self.full_K = inputs.views.K[self.ids]
+        self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
+        self.full_K = self.K_all[self.ids]
         run = train_run(ctx, iters, pose_lr, pose_warmup_frac, learn_poses)
         gate_p = ctx.section("gate")
         s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids])
@@ -94,7 +108,7 @@ class Round:
             # the tracks (not the poses) of COLMAP's reconstruction of this round's views' matches
             with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
                 ba = init_from_matches(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
-                                       sizes=np.tile(inputs.views.images.shape[1:3], (len(inputs.names), 1)))
+                                       sizes=inputs.sizes)
             self.corr = correspondence.ReprojectionLoss(
                 correspondence.TrackSet(self.ids, inputs.views.K, ba.obs_view, ba.obs_point, ba.obs_uv), self.corr_p,
                 correspondence_weight, device)
@@ -226,7 +240,7 @@ def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> Non
     for k, (P, g) in enumerate(zip(rnd.pose_trace, rnd.grad_trace)):
         trace[k, rnd.ids] = P
         grads[k, rnd.ids] = g
-    io.save_arrays(out_dir / "poses.zarr", {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed,
+    io.save_arrays(out_dir / "poses.zarr", {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed, "K": rnd.K_all,
                                             "optimised": np.isin(np.arange(n_views), rnd.ids),
                                             "pose_trace": trace, "pose_grad_norm": grads}, chunk_first=False)
     rnd.trainer.save(out_dir / "model.pt")

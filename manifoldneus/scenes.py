@@ -204,6 +204,7 @@ def read_views(ref: SceneRef, p) -> dict:
         views = reader(ref.path, p)
         views["layout"] = layout
     source = views.pop("intrinsics_source", "calibrated")
+    views["K"], source = _intrinsics_in_use(views["K"], source, views["images"].shape[1:3], p)
     views = every_nth_view(views, p.view_stride)
     if not p.load_masks:
         views.pop("masks", None)
@@ -211,6 +212,38 @@ def read_views(ref: SceneRef, p) -> dict:
         views.pop("mono_depth", None)
         views.pop("mono_normal", None)
     return {**_downscale(views, p.downscale), "intrinsics_source": source}
+
+
+def default_intrinsics(height: int, width: int) -> np.ndarray:
+    """COLMAP's guess for an uncalibrated camera without EXIF [3,3]: focal 1.2 x the larger side,
+    principal point at the image centre."""
+    f = 1.2 * max(width, height)
+    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def _intrinsics_in_use(K: np.ndarray, source: str, size, p) -> tuple[np.ndarray, str]:
+    """The K the method starts from and where it came from: ``ingest.intrinsics`` (given) over any
+    layout's; with ``ingest.use_calibration`` false a layout's cameras are dropped for the
+    uncalibrated guess (default), as if the photos had come alone."""
+    if p.intrinsics:
+        if len(p.intrinsics) != 4:
+            raise SceneError("ingest.intrinsics must be [fx, fy, cx, cy] in pixels of the input images")
+        fx, fy, cx, cy = p.intrinsics
+        return np.repeat(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)[None], len(K), 0), "given"
+    if not p.use_calibration and source == "calibrated":
+        return np.repeat(default_intrinsics(*size)[None], len(K), 0), "default"
+    return K, source
+
+
+def layout_intrinsics(ref: SceneRef, p) -> np.ndarray | None:
+    """The layout's own calibration [N,3,3] at the ingest's size and view stride, whatever
+    ``ingest.intrinsics`` / ``use_calibration`` say (for evaluation: the ``ground_truth`` stage);
+    None for a plain photo folder, which has none."""
+    import dataclasses
+
+    views = read_views(ref, dataclasses.replace(p, intrinsics=[], use_calibration=True, load_masks=False,
+                                                load_priors=False))
+    return views["K"] if views["intrinsics_source"] == "calibrated" else None
 
 
 def _monosdf_intrinsics(world_mats: list[np.ndarray], size: int, original_size) -> np.ndarray:
@@ -321,12 +354,7 @@ def _plain_views(path: Path, p) -> dict:
     if len(shapes) != 1:
         raise SceneError(f"{folder}: images differ in size ({sorted(shapes)[:3]}); resize them to one size")
     h, w = images[0].shape[:2]
-    if p.intrinsics:
-        if len(p.intrinsics) != 4:
-            raise SceneError("ingest.intrinsics must be [fx, fy, cx, cy] in pixels of the input images")
-        (fx, fy, cx, cy), source = p.intrinsics, "given"
-    else:
-        fx, fy, cx, cy, source = _estimate_intrinsics(files[0], w, h)
+    fx, fy, cx, cy, source = _estimate_intrinsics(files[0], w, h)  # ingest.intrinsics, when given, replaces it
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
     return {"images": np.stack(images), "K": np.repeat(K[None], len(files), 0), "names": [f.stem for f in files],
             "intrinsics_source": source}
@@ -343,8 +371,8 @@ def _estimate_intrinsics(image_path: Path, w: int, h: int) -> tuple[float, float
         source = "exif" if cam.has_prior_focal_length else "default"
         return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), source
     except Exception:  # noqa: BLE001 - fall back to COLMAP's default prior
-        f = 1.2 * max(w, h)
-        return f, f, w / 2.0, h / 2.0, "default"
+        K = default_intrinsics(h, w)
+        return K[0, 0], K[1, 1], K[0, 2], K[1, 2], "default"
 
 
 # ---------------------------------------------------------------------------- ground truth

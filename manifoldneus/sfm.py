@@ -30,6 +30,24 @@ REFINABLE = ("focal", "principal_point", "radial")
 # --------------------------------------------------------------------------- cameras
 
 
+def intrinsics_mode(setting: str, source: str) -> str:
+    """``auto`` -> ``fixed`` for calibrated or given intrinsics (the ingest's ``intrinsics_source``),
+    ``refine`` for an EXIF prior or a guess; any other setting stands."""
+    if setting != "auto":
+        return setting
+    return "fixed" if source in ("calibrated", "given") else "refine"
+
+
+def shared_K(K: np.ndarray, sizes: np.ndarray, ids: Sequence[int], K_ids: np.ndarray) -> np.ndarray:
+    """K [N,3,3] with the intrinsics ``K_ids`` [len(ids),3,3] estimated for views ``ids`` given to
+    every view of the same camera (:func:`shared_cameras`); views of other cameras keep theirs."""
+    cam = shared_cameras(K, sizes)
+    out = np.array(K, np.float64)
+    for k, v in enumerate(ids):
+        out[cam == cam[v]] = K_ids[k]
+    return out
+
+
 def camera_from_K(K: np.ndarray, width: int, height: int, radial: bool = False):
     """pycolmap.Camera of a pixel K [3,3]: SIMPLE_PINHOLE (one focal length, the better-posed
     unknown when it is refined) when fx = fy, else PINHOLE; SIMPLE_RADIAL (k1 = 0) when ``radial``."""

@@ -112,7 +112,7 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
 
     views_meta = io.load_json(versions["ingest"] / "views.json")
     names, width, height = views_meta["names"], views_meta["width"], views_meta["height"]
-    K = io.load_arrays(versions["ingest"] / "views.zarr", ["K"])["K"]
+    K = io.load_arrays(versions["successors"] / "final" / "poses.zarr", ["K"])["K"]  # the intrinsics the poses belong to
     n = len(names)
     schedule = io.load_json(versions["schedule"] / "schedule.json")
     held_out = np.zeros(n, bool)

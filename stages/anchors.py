@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import io, mavos, pose_init, posefree
+from manifoldneus import io, mavos, pose_init, posefree, sfm
 from manifoldneus.config import ParamError, param
 
 
@@ -33,6 +33,13 @@ class Params:
                                     lo=0.0, hi=1.0)
     correspondence_weight: float = param(1.0, "Weight of the correspondence term (section `correspondence`) in the "
                                          "anchors' pose loss; 0 = photometric poses only (docs/REFINEMENT.md)", lo=0.0)
+    intrinsics: str = param("auto", "matches init: fixed holds the ingest's K; refine lets COLMAP's mapper and bundle "
+                            "adjustment refine `refine_intrinsics` of each shared camera (one per K and image size), "
+                            "and every later stage uses the refined K; auto: fixed for calibrated or given intrinsics "
+                            "(views.json intrinsics_source), refine for an EXIF focal length or the 1.2 x guess",
+                            choices=["auto", "fixed", "refine"])
+    refine_intrinsics: list[str] = param(["focal"], "What `intrinsics = refine` changes: focal, principal_point (the "
+                                         "renderer is a pinhole camera: no distortion term)")
     reproj_px: float = param(3.0, "matches init: COLMAP's reprojection threshold for keeping observations (px)",
                              lo=0.1)
     ba_loss: str = param("cauchy", "matches init: robust loss of a last bundle adjustment after COLMAP's mapper (its own "
@@ -57,6 +64,9 @@ class Params:
                                        "direction", lo=0.0, hi=1.0)
 
     def __post_init__(self):
+        unknown = set(self.refine_intrinsics) - {"focal", "principal_point"}
+        if unknown:
+            raise ParamError(f"anchors.refine_intrinsics: {sorted(unknown)} not among focal, principal_point")
         if len(self.perturb_rot_deg) != 2 or self.perturb_rot_deg[0] > self.perturb_rot_deg[1]:
             raise ParamError(f"anchors.perturb_rot_deg: expected [lo, hi] with lo <= hi, got {self.perturb_rot_deg}")
 
@@ -81,14 +91,20 @@ def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndar
     return cameras.transform_w2c(ref["w2c"], s, np.eye(3), -s * centre), ref["registered"].astype(bool)
 
 
-def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Params) -> tuple[np.ndarray, dict]:
+def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Params
+                  ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(w2c [N,4,4] of the anchors (identity elsewhere), K [N,3,3] the poses belong to, what was done)."""
     n = len(inputs.names)
     w2c = np.tile(np.eye(4), (n, 1, 1))
+    K = inputs.views.K
     if p.pose_init == "identity":
         w2c[anchors] = pose_init.identity_init(len(anchors), p.identity_distance)
-        return w2c, {"method": "identity"}
+        return w2c, K, {"method": "identity"}
     if p.pose_init == "reference":
         ref, registered = reference_poses(ctx.input("reference"), n, p.gauge_radius)
+        if registered.any():  # pycolmap's intrinsics (refined when it refined them)
+            ids = np.flatnonzero(registered)
+            K = sfm.shared_K(K, inputs.sizes, ids, io.load_arrays(ctx.input("reference") / "poses.zarr", ["K"])["K"][ids])
         missing = [inputs.names[a] for a in anchors if not registered[a]]
         if missing:
             ctx.log.warning("pycolmap did not register anchors %s; they start at a registered neighbour's pose", missing)
@@ -97,7 +113,7 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
             if not registered[a]:
                 nb = [j for j in np.argsort(-inputs.W[a]) if registered[j]]
                 w2c[a] = ref[nb[0]] if nb else np.eye(4)
-        return w2c, {"method": "reference", "unregistered": missing}
+        return w2c, K, {"method": "reference", "unregistered": missing}
     res = matches_init(ctx, inputs, anchors, p)
     ids = res.view_ids
     bridges = sorted(set(ids) - set(anchors))
@@ -107,7 +123,13 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
                         inputs.names[v], res.why_unplaced[v])
     row = {v: k for k, v in enumerate(ids)}
     w2c[anchors] = res.w2c[[row[a] for a in anchors]]
-    return w2c, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
+    if res.diagnostics["refine_intrinsics"] and res.placed.any():
+        placed = np.flatnonzero(res.placed)
+        K = sfm.shared_K(K, inputs.sizes, [ids[k] for k in placed], res.K[placed])
+        ctx.log.info("intrinsics refined (%s): focal %.1f -> %.1f px, principal point (%.1f, %.1f) -> (%.1f, %.1f)",
+                     ", ".join(res.diagnostics["refine_intrinsics"]), inputs.views.K[anchors[0]][0, 0],
+                     K[anchors[0]][0, 0], *inputs.views.K[anchors[0]][:2, 2], *K[anchors[0]][:2, 2])
+    return w2c, K, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
                  "bridges": [int(v) for v in bridges], "unplaced": [inputs.names[v] for v in unplaced],
                  "why_unplaced": {inputs.names[v]: res.why_unplaced[v] for v in unplaced},
                  **res.diagnostics}
@@ -123,10 +145,11 @@ def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Param
                      "initialisation also uses views %s, which bridge them", mavos.bottleneck_weight(inputs.W, anchors),
                      p.bridge_min_matches, [inputs.names[v] for v in bridges])
     masks = None if inputs.views.masks is None else [inputs.views.masks[v] for v in ids]
-    sizes = np.tile(inputs.views.images.shape[1:3], (len(inputs.names), 1))
+    refine = p.refine_intrinsics if sfm.intrinsics_mode(p.intrinsics, inputs.intrinsics_source) == "refine" else ()
     with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
-        return pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, sizes=sizes,
-                                           reproj_px=p.reproj_px, final_ba_loss=p.ba_loss,
+        return pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
+                                           sizes=inputs.sizes, refine=refine,
+                                           prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px, final_ba_loss=p.ba_loss,
                                            final_ba_scale_px=p.ba_loss_px, gauge_radius=p.gauge_radius, masks=masks,
                                            seed=ctx.section("run").seed, log=ctx.log.info)
 
@@ -176,7 +199,8 @@ def run(ctx) -> None:
         raise RuntimeError(f"only {len(anchors)} trainable anchor view(s); check schedule.anchor_percent and "
                            f"split.holdout_every")
     n = len(inputs.names)
-    w2c0, init_info = initial_poses(ctx, inputs, anchors, p)
+    w2c0, K, init_info = initial_poses(ctx, inputs, anchors, p)
+    inputs = posefree.with_intrinsics(inputs, K)  # every round from here on uses them
     if max(p.perturb_rot_deg, default=0.0) > 0 or p.perturb_centre_frac > 0:
         w2c0[anchors] = perturbed(w2c0[anchors], p, ctx.section("run").seed)
         init_info["perturbed"] = {"rot_deg": list(p.perturb_rot_deg), "centre_frac": p.perturb_centre_frac}
@@ -184,7 +208,7 @@ def run(ctx) -> None:
                      p.perturb_rot_deg, p.perturb_centre_frac)
     placed = np.zeros(n, bool)
     placed[anchors] = True
-    io.save_arrays(ctx.out / "initial_poses.zarr", {"w2c": w2c0, "placed": placed}, chunk_first=False)
+    io.save_arrays(ctx.out / "initial_poses.zarr", {"w2c": w2c0, "placed": placed, "K": K}, chunk_first=False)
     ctx.log.info("anchors %s initialised by %s", [inputs.names[a] for a in anchors], init_info["method"])
 
     s_tilde = inputs.schedule["s_tilde_rounds"][0]

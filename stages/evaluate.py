@@ -72,6 +72,30 @@ def plot_rounds(rows: list[dict], path) -> None:
     io.save_figure(path, fig)
 
 
+def intrinsics_report(ctx, rounds: list[tuple[str, dict]], K_gt: np.ndarray | None) -> dict:
+    """The intrinsics the ingest started from and those the poses ended with (mean over the views
+    the last round placed), and their error against the layout's own calibration where it has one."""
+    ingest_K = io.load_arrays(ctx.input("ingest") / "views.zarr", ["K"])["K"]
+    final = rounds[-1][1]
+    placed = final["placed"].astype(bool)
+    out = {"source": io.load_json(ctx.input("ingest") / "views.json").get("intrinsics_source", "calibrated")}
+
+    def describe(K):
+        K = np.asarray(K)[placed]
+        return {"focal_px": float(K[:, [0, 1], [0, 1]].mean()), "principal_point_px": K[:, :2, 2].mean(0).tolist()}
+
+    out["start"], out["final"] = describe(ingest_K), describe(final["K"])
+    if K_gt is not None:
+        out["ground_truth"] = describe(K_gt)
+        for key in ("start", "final"):
+            out[key]["focal_err_pct"] = 100 * abs(out[key]["focal_px"] / out["ground_truth"]["focal_px"] - 1)
+    ctx.log.info("intrinsics (%s): focal %.1f px at the start, %.1f px final%s", out["source"],
+                 out["start"]["focal_px"], out["final"]["focal_px"],
+                 f" (ground truth {out['ground_truth']['focal_px']:.1f} px: {out['final']['focal_err_pct']:.2f} % off)"
+                 if K_gt is not None else "")
+    return out
+
+
 def run(ctx) -> None:
     p: Params = ctx.params
     gt_meta = io.load_json(ctx.input("ground_truth") / "gt.json")
@@ -110,6 +134,7 @@ def run(ctx) -> None:
                      mean["rot_err_deg"], mean["center_err_units"], gt_meta["units"])
         final_res = res
     report["poses"] = rows
+    report["intrinsics"] = intrinsics_report(ctx, rounds, gt.get("K"))
     if final_res is not None:  # the final views at their placement poses: what the rounds started from
         report["placement"] = pose_metrics.evaluate_poses(placement_poses(rounds), gt["w2c"], valid=final_res["valid"],
                                                           units_scale=units)["summary"]
@@ -135,7 +160,7 @@ def run(ctx) -> None:
         from manifoldneus import synthetic
 
         surf = gt["surface_points"]
-        views = artifacts.load_views(ctx.input("ingest"))
+        views = artifacts.load_views(ctx.input("ingest"), K=gt.get("K"))
         h, w = views.images.shape[1:3]
         ref_pts = surf[synthetic.points_visible(surf, views.K, gt["w2c"], h, w)]
         ref_label = "exact surface (observed part)"
@@ -157,7 +182,7 @@ def run(ctx) -> None:
     final_dir = ctx.input("successors") / "final"
     final = artifacts.load_round(final_dir)
     if len(held):
-        views = artifacts.load_views(ctx.input("ingest"), final["w2c"])
+        views = artifacts.load_views(ctx.input("ingest"), final["w2c"], final["K"])
         ids = np.flatnonzero(final["optimised"].astype(bool))
         trainer = evaluation.trainer_from_checkpoint(final_dir / "model.pt", posefree.subset_views(views, ids, final["w2c"]),
                                                      ctx.section("run").device)
@@ -173,6 +198,9 @@ def run(ctx) -> None:
     for row in rows:
         if "summary" in row:
             ctx.metrics[f"{row['label']}_rot_err_deg_mean"] = row["summary"]["rot_err_deg"]["mean"]
+    ctx.metrics["focal_px"] = report["intrinsics"]["final"]["focal_px"]
+    if "focal_err_pct" in report["intrinsics"]["final"]:
+        ctx.metrics["focal_err_pct"] = report["intrinsics"]["final"]["focal_err_pct"]
     if "geometry" in report:
         ctx.metrics.update(chamfer_units=report["geometry"]["chamfer_units"],
                            chamfer_pct_bbox=report["geometry"]["chamfer_pct_of_bbox_diagonal"])

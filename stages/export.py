@@ -73,7 +73,7 @@ def run(ctx) -> None:
     final = artifacts.load_round(final_dir)
     w2c, placed = final["w2c"], final["placed"].astype(bool)
     valid = placed & final["optimised"].astype(bool)
-    views = artifacts.load_views(ctx.input("ingest"), w2c)
+    views = artifacts.load_views(ctx.input("ingest"), w2c, final["K"])
     M, frame, units, how = world_from_model(ctx.input("ground_truth"), w2c, valid, p.frame)
     ctx.log.info("exports in the %s frame (%s): %s", frame, units, how)
     s, R, t = cameras.sim3_from_matrix(M)

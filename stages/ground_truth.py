@@ -17,7 +17,8 @@ OUTPUTS = ("gt.json",)
 
 def run(ctx) -> None:
     gt = scenes.read_ground_truth(ctx.scene_ref, ctx.params)
-    names = io.load_json(ctx.input("ingest") / "views.json")["names"]
+    meta = io.load_json(ctx.input("ingest") / "views.json")
+    names = meta["names"]
     if gt is None:
         ctx.log.info("scene has no ground-truth poses; evaluation will report what it can without them")
         io.save_json(ctx.out / "gt.json", {"has_poses": False, "has_surface": False, "units": None})
@@ -26,6 +27,11 @@ def run(ctx) -> None:
     if len(gt["w2c"]) != len(names):
         raise scenes.SceneError(f"{len(gt['w2c'])} ground-truth poses for {len(names)} views")
     arrays = {k: gt[k] for k in ("w2c", "normalization")}
+    # the layout's own intrinsics, for the error of those the method estimates (when it started from others)
+    K = (io.load_arrays(ctx.input("ingest") / "views.zarr", ["K"])["K"] if meta["intrinsics_source"] == "calibrated"
+         else scenes.layout_intrinsics(ctx.scene_ref, ctx.params))
+    if K is not None:
+        arrays["K"] = K
     if "surface_points" in gt:
         arrays["surface_points"] = gt["surface_points"]
     io.save_arrays(ctx.out / "poses.zarr", arrays, chunk_first=False)

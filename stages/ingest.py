@@ -24,7 +24,12 @@ class Params:
                              lo=1, hi=100)
     load_masks: bool = param(True, "Read foreground masks when the layout has them")
     load_priors: bool = param(True, "Read monocular depth/normal priors when the layout has them")
-    intrinsics: list[float] = param([], "[fx, fy, cx, cy] for a plain image folder; empty = pycolmap's estimate")
+    intrinsics: list[float] = param([], "[fx, fy, cx, cy] in pixels of the input images, for any layout (held fixed "
+                                    "unless anchors.intrinsics = refine); empty = the layout's cameras, else the EXIF "
+                                    "focal length, else 1.2 x the larger side (refined downstream)")
+    use_calibration: bool = param(True, "Read the layout's cameras' intrinsics; false = start from the uncalibrated "
+                                  "guess (1.2 x the larger side) as a plain photo folder would, to measure "
+                                  "self-calibration against the layout's own K")
     monosdf_original_size: list[int] = param([1600, 1200], "MonoSDF: size of the original images that "
                                              "world_mat projects into (centre-cropped to a square, resized)")
     synthetic_views: int = param(49, "Synthetic scene: number of views", lo=2, hi=400)

@@ -66,13 +66,6 @@ def _same_K(K: np.ndarray, tol: float = 1e-3) -> bool:
     return bool(np.all(np.abs(K - K[0]) < tol))
 
 
-def intrinsics_mode(setting: str, source: str) -> str:
-    """``auto`` -> ``fixed`` for calibrated or given intrinsics, ``refine`` for an EXIF prior or a guess."""
-    if setting != "auto":
-        return setting
-    return "fixed" if source in ("calibrated", "given") else "refine"
-
-
 def run_colmap(
     image_dir: Path,
     names: list[str],
@@ -182,7 +175,7 @@ def run(ctx) -> None:
     names = list(meta["names"])
     arrays = load_arrays(src / "views.zarr", ["images", "K"])
     files = [f"{Path(nm).stem if Path(nm).suffix else nm}.png" for nm in names]
-    intrinsics = intrinsics_mode(p.intrinsics, meta.get("intrinsics_source", "calibrated"))
+    intrinsics = sfm.intrinsics_mode(p.intrinsics, meta.get("intrinsics_source", "calibrated"))
     if len(set(files)) != len(files):
         files = [f"{v:06d}.png" for v in range(len(names))]
 

@@ -54,7 +54,7 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
 
     ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
     res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, reproj_px=reproj_px,
-                                      sizes=np.tile(inputs.views.images.shape[1:3], (len(inputs.names), 1)))
+                                      sizes=inputs.sizes)
     row = {v: k for k, v in enumerate(ids)}
     ok = [v for v in placed_ids if res.placed[row[v]]]
     if len(ok) < 3:
@@ -74,6 +74,7 @@ def run(ctx) -> None:
         n_rounds = p.max_rounds
     prev_dir = ctx.input("anchors") / "round_0"
     prev = artifacts.load_round(prev_dir)
+    inputs = posefree.with_intrinsics(inputs, prev["K"])  # the anchors' (refined when they refined them)
     carry = {k: v for k, v in torch.load(prev_dir / "model.pt", map_location="cpu", weights_only=False).items()
              if k in ("field", "background", "cache")}
     w2c, placed = prev["w2c"], prev["placed"].astype(bool)

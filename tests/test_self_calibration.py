@@ -1,0 +1,67 @@
+"""Self-calibration (issue 13): photos whose focal length is a guess. The anchors' initialisation
+refines the shared camera's focal length in COLMAP's bundle adjustment, and every later stage uses
+the refined K. Tiny synthetic scene without masks, CPU."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import pipeline
+from manifoldneus import io, scenes, synthetic
+from tests.test_end_to_end import TINY
+
+RES = 192  # the focal length is weakly determined at a narrow field of view; 128 px keypoints leave it ~4 % off
+F_TRUE = synthetic.FOCAL_FACTOR * RES
+UNMASKED = [*TINY, f"ingest.synthetic_resolution={RES}", "ingest.load_masks=false", "reference_surface.enabled=false"]
+OFF = [f"ingest.intrinsics=[{0.7 * F_TRUE}, {0.7 * F_TRUE}, {RES / 2}, {RES / 2}]"]  # 30 % short
+
+
+def evaluation(root):
+    store = pipeline.Store(root, "synthetic")
+    return io.load_json(store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json")
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    root = tmp_path_factory.mktemp("calibrated")
+    pipeline.run("synthetic", until="evaluate", overrides=UNMASKED, artifacts=root)
+    return evaluation(root)
+
+
+def test_given_intrinsics_are_held_fixed_unless_refined(tmp_path, calibrated):
+    pipeline.run("synthetic", until="anchors", overrides=[*UNMASKED, *OFF], artifacts=tmp_path)
+    store = pipeline.Store(tmp_path, "synthetic")
+    K = io.load_arrays(store.version_dir("anchors", store.current("anchors")) / "initial_poses.zarr")["K"]
+    assert np.allclose(K[:, 0, 0], 0.7 * F_TRUE)  # given = known: auto keeps them
+    assert calibrated["intrinsics"]["source"] == "calibrated"
+    assert calibrated["intrinsics"]["final"]["focal_err_pct"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_focal_length_30_percent_off_is_recovered(tmp_path, calibrated):
+    pipeline.run("synthetic", overrides=[*UNMASKED, *OFF, "anchors.intrinsics=refine"], artifacts=tmp_path)
+    out = evaluation(tmp_path)
+    intr = out["intrinsics"]
+    assert intr["source"] == "given" and intr["start"]["focal_err_pct"] == pytest.approx(30.0, abs=1e-6)
+    assert intr["ground_truth"]["focal_px"] == pytest.approx(F_TRUE)
+    assert intr["final"]["focal_err_pct"] < 2.0, intr
+    # the rounds, the mesh and the exports use the refined K, not the ingest's
+    store = pipeline.Store(tmp_path, "synthetic")
+    final_K = io.load_arrays(store.version_dir("successors", store.current("successors")) / "final" / "poses.zarr",
+                             ["K"])["K"]
+    assert np.allclose(final_K[:, 0, 0], intr["final"]["focal_px"])
+    exported = io.load_json(store.version_dir("export", store.current("export")) / "transforms.json")
+    assert exported["frames"][0]["fl_x"] == pytest.approx(intr["final"]["focal_px"])
+    # poses within 2x those of the run that knew K (both unmasked)
+    ours, theirs = (r["poses"][-1]["summary"]["rot_err_deg"]["mean"] for r in (out, calibrated))
+    assert ours <= 2 * theirs, (ours, theirs)
+
+
+def test_use_calibration_false_starts_from_the_uncalibrated_guess(tmp_path):
+    """The layout's cameras dropped (as for photos copied alone into a folder); the ground truth
+    keeps them, so evaluation can score what self-calibration finds."""
+    p = pipeline.resolve_params(pipeline.load_stages(), overrides=[*TINY, "ingest.use_calibration=false"])["ingest"]
+    views = scenes.read_views(scenes.resolve_scene("synthetic"), p)
+    h, w = views["images"].shape[1:3]
+    assert views["intrinsics_source"] == "default"
+    assert np.allclose(views["K"], scenes.default_intrinsics(h, w))
+    assert np.allclose(scenes.layout_intrinsics(scenes.resolve_scene("synthetic"), p), synthetic.intrinsics(h, w))
