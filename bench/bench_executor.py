@@ -32,7 +32,7 @@ from manifoldneus import io  # noqa: E402
 
 # A sweep row of about a minute on one core: the synthetic scene at its defaults, short rounds,
 # round 1 only (what the tables read), no GT-pose surface.
-REDUCED = ["run.threads=1", "anchors.iters=150", "successors.iters=100", "successors.max_rounds=1",
+REDUCED = ["run.threads=1", "anchors.iters=100", "successors.iters=60", "successors.max_rounds=1",
            "successors.final_iters=0", "reference_surface.enabled=false"]
 
 
