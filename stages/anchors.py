@@ -149,8 +149,8 @@ def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Param
     with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
         return pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
                                            sizes=inputs.sizes, refine=refine,
-                                           prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px, final_ba_loss=p.ba_loss,
-                                           final_ba_scale_px=p.ba_loss_px, gauge_radius=p.gauge_radius, masks=masks,
+                                           prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px,
+                                           final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px, gauge_radius=p.gauge_radius, masks=masks,
                                            seed=ctx.section("run").seed, log=ctx.log.info)
 
 
