@@ -150,7 +150,8 @@ def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Param
         return pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
                                            sizes=inputs.sizes, refine=refine,
                                            prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px,
-                                           final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px, gauge_radius=p.gauge_radius, masks=masks,
+                                           final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px,
+                                           gauge_radius=p.gauge_radius, masks=masks,
                                            seed=ctx.section("run").seed, log=ctx.log.info)
 
 
