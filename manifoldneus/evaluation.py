@@ -26,6 +26,13 @@ class MeshParams:
     cull_by_masks: bool = param(True, "Cull vertices outside the training views' dilated masks (when masks exist)")
     cull_dilation: int = param(12, "Mask dilation (px at ingest resolution) for culling", lo=0)
     cull_unseen: bool = param(True, "Cull surface that no training view sees (self-occlusion z-buffer)")
+    drop_sphere_closure: bool = param(True, "Remove the surface marching cubes puts on the grid's bounding sphere where "
+                                      "the SDF is still negative there (no view saw it as surface)")
+    crop_to_object: str = param("auto", "Crop the surface to the object's region the anchors found from the SfM "
+                                "points (ball and support plane; manifoldneus/object_region.py): auto = when the "
+                                "run has no masks | on | off", choices=("auto", "on", "off"))
+    support_margin: float = param(0.02, "The crop keeps surface this far above the support plane (in units of the "
+                                  "object region's radius), so the support itself goes", lo=0.0, hi=0.5)
     visibility_size: int = param(128, "Image size (longest side, px) of the z-buffers that decide visibility", lo=16)
     preview_size: int = param(320, "Side of each of the 3 preview renderings (px)", lo=64)
 
@@ -55,11 +62,19 @@ def field_vertex_colours(trainer: Trainer, vertices: np.ndarray, normals: np.nda
     return out
 
 
-def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=None):
-    """Mesh of the trainer's SDF; culled by the given views' dilated masks and to the surface they
-    see, when asked (K [N,3,3] and w2c [N,4,4] at image size hw = (H, W), the masks' size)."""
+def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=None, region=None):
+    """Mesh of the trainer's SDF; culled by the given views' dilated masks, to the surface they
+    see and to the object's ``region`` (:class:`~manifoldneus.object_region.ObjectRegion`, the field's
+    frame), when asked (K [N,3,3] and w2c [N,4,4] at image size hw = (H, W), the masks' size)."""
     mesh = meshing.extract_mesh(trainer.sdf_fn(), p.resolution, trainer.rp.radius, p.keep_components)
     culled = False
+    if p.drop_sphere_closure and len(mesh.faces):
+        mesh, culled = meshing.keep_vertices(mesh, meshing.off_sphere_closure(
+            np.asarray(mesh.vertices), trainer.rp.radius, p.resolution)), True
+    crop = p.crop_to_object == "on" or (p.crop_to_object == "auto" and masks is None)
+    if crop and region is not None and len(mesh.faces):
+        mesh, culled = meshing.keep_vertices(mesh, region.contains(np.asarray(mesh.vertices),
+                                                                   p.support_margin * region.radius)), True
     if p.cull_by_masks and masks is not None and len(mesh.faces):
         mesh, culled = meshing.cull_by_masks(mesh, K, w2c, masks, dilation=p.cull_dilation), True
     if p.cull_unseen and K is not None and hw is not None and len(mesh.faces):

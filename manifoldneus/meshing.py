@@ -1,5 +1,6 @@
 """Surface extraction: SDF on a grid inside the sphere -> marching cubes -> largest component(s),
-optional culling by the training views' (dilated) masks, PLY writing and a PNG preview.
+optional culling (the sphere's closure, the training views' dilated masks, surface no view sees, what
+lies outside the object's region), PLY writing and a PNG preview.
 
 Outside the sphere the SDF is unconstrained, so the grid values are intersected with the sphere:
 f' = max(f, |x| - radius) (the mesh is closed by the sphere where the SDF leaks out).
@@ -60,6 +61,22 @@ def largest_components(mesh, keep: int = 1, min_faces: int = 0):
     return trimesh.util.concatenate(parts)
 
 
+def keep_vertices(mesh, keep):
+    """The mesh with only the faces whose vertices all have ``keep`` (bool [V]) set."""
+    out = mesh.copy()
+    out.update_faces(np.asarray(keep, bool)[mesh.faces].all(1))
+    out.remove_unreferenced_vertices()
+    return out
+
+
+def off_sphere_closure(vertices: np.ndarray, radius: float, resolution: int) -> np.ndarray:
+    """bool [V]: vertices [V,3] away from the sphere that closes the grid (:func:`sdf_grid`): where the SDF
+    is still negative at the sphere, marching cubes puts surface on the sphere itself, which no view saw
+    as surface (an unmasked capture's background, the far side of a cropped field)."""
+    cell = 2 * radius / (resolution - 1)
+    return np.linalg.norm(vertices, axis=1) < radius - 0.75 * cell
+
+
 def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all"):
     """Remove vertices outside the training views' dilated masks.
 
@@ -88,12 +105,7 @@ def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all"):
         in_mask = in_img & (m[r, c] > 0)
         inside_all &= in_mask | ~in_img
         inside_any |= in_mask
-    keep_v = inside_all if rule == "all" else inside_any
-    keep_f = keep_v[mesh.faces].all(1)
-    out = mesh.copy()
-    out.update_faces(keep_f)
-    out.remove_unreferenced_vertices()
-    return out
+    return keep_vertices(mesh, inside_all if rule == "all" else inside_any)
 
 
 def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0):
@@ -124,10 +136,7 @@ def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0):
         zbuf = minimum_filter(zbuf.reshape(h, w), size=3, mode="nearest").reshape(-1)
         footprint = z[idx] / (0.5 * (Ki[0, 0] + Ki[1, 1]) * scale)  # world size of a z-buffer pixel
         seen[idx[z[idx] <= zbuf[pix] + depth_tol_px * footprint]] = True
-    out = mesh.copy()
-    out.update_faces(seen[mesh.faces].all(1))
-    out.remove_unreferenced_vertices()
-    return out
+    return keep_vertices(mesh, seen)
 
 
 def extract_mesh(sdf_fn, resolution: int = 256, radius: float = 1.0, keep_components: int = 1,

@@ -31,7 +31,7 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from . import sfm
+from . import object_region, sfm
 from .cameras import gauge_from_points, lift_points, sim3_matrix, to_4x4, transform_w2c
 from .mavos import covisibility_matrix
 
@@ -82,7 +82,7 @@ class InitResult:
     placed: np.ndarray  # bool [V]: pose from the reconstruction (False: fallback pose, see method)
     method: list[str]  # per view: mapped | fallback:<view id> | identity
     points: np.ndarray  # [P,3] the reconstruction's 3D points (gauge frame)
-    point_in_mask: np.ndarray  # bool [P]: majority of the observations in the foreground (all True without masks)
+    point_in_mask: np.ndarray  # bool [P]: the gauge's points (observed mostly in the masks, or in the common frustum)
     gauge: np.ndarray  # [4,4] similarity reconstruction frame -> gauge frame (y = s x + t)
     K: np.ndarray  # [V,3,3] the intrinsics after bundle adjustment (the input K where held fixed)
     unplaced: list[int]  # global ids of the views the reconstruction could not place
@@ -130,6 +130,8 @@ def init_from_matches(
     gauge_radius: float = 0.8,
     gauge_percentile: float = 95.0,
     masks: Sequence[np.ndarray] | None = None,
+    object_min_seen: float = 0.5,
+    object_gauge_percentile: float = 99.0,
     log: Callable[[str], None] | None = None,
 ) -> InitResult:
     """Initial poses of the views ``view_ids`` (the anchors) from our verified matches, by
@@ -142,7 +144,11 @@ def init_from_matches(
     (``sfm.REFINABLE``); prior_focal: whether K's focal length is known (EXIF or calibration) or a
     guess. final_ba_loss / final_ba_scale_px: the robust loss of a last bundle adjustment after
     COLMAP's (whose global adjustments are plain least squares), "trivial" = none. masks (optional, one [H,W] bool per entry of ``view_ids``): the gauge's robust extent is
-    then measured on the points seen mostly inside the foreground (when there are >= 20 of them).
+    then measured on the points seen mostly inside the foreground (when there are >= 20 of them);
+    without masks, at the ``object_gauge_percentile``-th percentile of the points at least
+    ``object_min_seen`` of the registered views see
+    (:mod:`manifoldneus.object_region`), whose region (ball and support plane, gauge frame) the
+    diagnostics carry as ``object_region``.
 
     Gauge: y = s (x - median(points)), s = gauge_radius / percentile(|x - median|, gauge_percentile):
     the object sits inside the unit sphere. Views COLMAP does not register (outside its largest model)
@@ -175,19 +181,26 @@ def init_from_matches(
     placed = rec["registered"]
     pts = rec["points"]
 
+    w2c = np.array(rec["w2c"])
+    reg = np.flatnonzero(placed)
     in_mask = np.ones(len(pts), bool)
     if masks is not None and len(pts):
         in_mask = _foreground_points(rec, masks, len(pts))
+    elif len(pts) and len(reg):  # no masks: the points in the registered views' common frustum
+        in_mask = object_region.seen_fraction(pts, rec["K"][reg], w2c[reg], sizes_l[reg]) >= object_min_seen
     gpts = pts[in_mask] if in_mask.sum() >= 20 else pts
-    w2c = np.array(rec["w2c"])
     if len(gpts) >= 3:
-        s, centre = gauge_from_points(gpts, gauge_radius, gauge_percentile)
+        frustum = masks is None and in_mask.sum() >= 20
+        s, centre = gauge_from_points(gpts, gauge_radius, object_gauge_percentile if frustum else gauge_percentile)
     else:  # no structure: the views look at the origin from identity_init's distance
         s, centre = 1.0, np.zeros(3)
         w2c[:] = identity_init(V)
         placed = np.zeros(V, bool)
     G = sim3_matrix(s, np.eye(3), -s * centre)
     w2c = transform_w2c(w2c, s, np.eye(3), -s * centre)
+    region = None
+    if len(pts) and len(reg):
+        region, _ = object_region.locate(s * (pts - centre), rec["K"][reg], w2c[reg], sizes_l[reg], object_min_seen)
 
     method = ["mapped" if placed[a] else "" for a in range(V)]
     unplaced, why = [], {}
@@ -219,7 +232,8 @@ def init_from_matches(
         "K": refined_K[np.flatnonzero(placed)[0]].tolist() if placed.any() else Kl[0].tolist(),
         "gauge_scale": float(s),
         "gauge_centre": centre.tolist(),
-        "gauge_points": "foreground" if (masks is not None and in_mask.sum() >= 20) else "all",
+        "gauge_points": ("all" if in_mask.sum() < 20 else "foreground" if masks is not None else "common frustum"),
+        "object_region": None if region is None else region.to_json(),
         "methods": {k: [m.split(":")[0] for m in method].count(k) for k in {m.split(":")[0] for m in method}},
         "seconds_total": rec["seconds"],
     }

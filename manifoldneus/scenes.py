@@ -196,7 +196,8 @@ def read_views(ref: SceneRef, p) -> dict:
     if ref.kind == "synthetic":
         from manifoldneus import synthetic
 
-        s = synthetic.make_scene(seed=ref.seed, n_views=p.synthetic_views, resolution=p.synthetic_resolution)
+        s = synthetic.make_scene(seed=ref.seed, n_views=p.synthetic_views, resolution=p.synthetic_resolution,
+                                floor=p.synthetic_floor)
         views = {"images": s.images, "K": s.K, "masks": s.masks, "names": list(s.names), "layout": "synthetic"}
     else:
         layout = detect_layout(ref.path) if p.layout == "auto" else p.layout
@@ -235,15 +236,16 @@ def _intrinsics_in_use(K: np.ndarray, source: str, size, p) -> tuple[np.ndarray,
     return K, source
 
 
-def layout_intrinsics(ref: SceneRef, p) -> np.ndarray | None:
-    """The layout's own calibration [N,3,3] at the ingest's size and view stride, whatever
-    ``ingest.intrinsics`` / ``use_calibration`` say (for evaluation: the ``ground_truth`` stage);
-    None for a plain photo folder, which has none."""
+def layout_reference(ref: SceneRef, p) -> dict:
+    """What the layout itself knows, whatever ``ingest.intrinsics`` / ``use_calibration`` /
+    ``load_masks`` say, at the ingest's size and view stride (for evaluation only: the
+    ``ground_truth`` stage): ``K`` [N,3,3] its calibration (None for a plain photo folder, which has
+    none) and ``masks`` [N,H,W] its foreground masks (None without)."""
     import dataclasses
 
-    views = read_views(ref, dataclasses.replace(p, intrinsics=[], use_calibration=True, load_masks=False,
+    views = read_views(ref, dataclasses.replace(p, intrinsics=[], use_calibration=True, load_masks=True,
                                                 load_priors=False))
-    return views["K"] if views["intrinsics_source"] == "calibrated" else None
+    return {"K": views["K"] if views["intrinsics_source"] == "calibrated" else None, "masks": views.get("masks")}
 
 
 def _monosdf_intrinsics(world_mats: list[np.ndarray], size: int, original_size) -> np.ndarray:

@@ -19,7 +19,8 @@ a (slight) underestimate for points inside near the junctions.
 The **seed only changes the texture** (a view-independent procedural albedo defined in 3D:
 smooth coloured value noise plus four scales of random coloured dots). Shading is Lambertian with
 two lights fixed in the world, baked into the colour, so the images are photometrically
-consistent across views. Background: a mild dark-grey vertical gradient, untextured.
+consistent across views. Background: a mild dark-grey vertical gradient, untextured; optionally
+(``floor``) the object stands on a textured floor disc (z = FLOOR_Z), as objects on a table do.
 
 Cameras (:func:`camera_poses`): three arcs of the upper hemisphere in front of the object
 (the -y side): elevations 20/40/60 deg, azimuth spans +-70/+-55/+-45 deg, 24/16/9 views for
@@ -345,6 +346,28 @@ def shade(points: np.ndarray, normals_world: np.ndarray, seed: int = 0) -> np.nd
     return np.clip(albedo(points, seed) * s[:, None], 0.0, 1.0)
 
 
+FLOOR_Z = -0.35  # the base's bottom: the object stands on the floor
+FLOOR_RADIUS = 2.0
+
+
+def floor_hit(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Ray parameter t [R] where rays (origins, unit dirs [R,3]) meet the floor, a textured disc of radius
+    FLOOR_RADIUS at z = FLOOR_Z under the object (inf where they miss it)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (FLOOR_Z - origins[:, 2]) / dirs[:, 2]
+    t = np.where((dirs[:, 2] < 0) & (t > 0), t, np.inf)
+    on = np.isfinite(t)
+    xy = origins[on, :2] + t[on, None] * dirs[on, :2]
+    t[np.flatnonzero(on)[np.linalg.norm(xy, axis=1) > FLOOR_RADIUS]] = np.inf
+    return t
+
+
+def floor_colour(points: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Linear RGB [P,3] of floor points: a texture of its own (the albedo of another seed, darker), lit
+    like the object from straight above."""
+    return shade(points, np.tile([0.0, 0.0, 1.0], (len(points), 1)), seed + 7919) * 0.8
+
+
 def background(height: int, width: int) -> np.ndarray:
     """Background colour [H,W,3] in [0,1]: a mild dark-grey vertical gradient."""
     v = np.linspace(0.2, 0.12, height)[:, None, None]
@@ -452,9 +475,12 @@ def _edge_pixels(mask: np.ndarray, depth: np.ndarray, rel: float = 0.01) -> np.n
     return out
 
 
-def render_view(K: np.ndarray, w2c: np.ndarray, height: int, width: int, seed: int = 0, supersample: int = 2):
+def render_view(K: np.ndarray, w2c: np.ndarray, height: int, width: int, seed: int = 0, supersample: int = 2,
+                floor: bool = False):
     """Render one view. Returns (image uint8 [H,W,3], mask bool [H,W], depth float32 [H,W],
-    normals float32 [H,W,3] in the camera frame, 0 on background).
+    normals float32 [H,W,3] in the camera frame, 0 on background). ``floor``: the object stands on a
+    textured floor (:func:`floor_hit`), a support as in most captures; it is background (outside the
+    mask, no depth or normal).
 
     Mask / depth / normals come from the ray through the pixel centre (mask = the centre ray
     hits). Colour: the centre ray's, except on silhouettes and depth discontinuities where it
@@ -468,6 +494,10 @@ def render_view(K: np.ndarray, w2c: np.ndarray, height: int, width: int, seed: i
     pts = o[hit] + t[hit][:, None] * d[hit]
     n_world = sdf_normals(pts)
     bg = background(height, width).reshape(-1, 3)
+    if floor:
+        tf = floor_hit(o, d)
+        on = ~hit & np.isfinite(tf)
+        bg[on] = floor_colour(o[on] + tf[on, None] * d[on], seed)
     rgb = bg.copy()
     rgb[hit] = shade(pts, n_world, seed)
     depth = np.zeros(height * width)
@@ -593,12 +623,12 @@ class SyntheticScene:
     names: list[str] = field(default_factory=list)
 
 
-def make_scene(seed: int = 0, n_views: int = 49, resolution: int = 192) -> SyntheticScene:
-    """Render the synthetic scene: ``n_views`` views of ``resolution`` x ``resolution`` pixels.
-    The seed changes the texture only (the shape and the cameras are fixed)."""
+def make_scene(seed: int = 0, n_views: int = 49, resolution: int = 192, floor: bool = False) -> SyntheticScene:
+    """Render the synthetic scene: ``n_views`` views of ``resolution`` x ``resolution`` pixels, the object
+    on a textured floor when ``floor``. The seed changes the texture only (the shape and the cameras are fixed)."""
     H = W = int(resolution)
     w2c = camera_poses(n_views)
     K = np.broadcast_to(intrinsics(H, W), (len(w2c), 3, 3)).copy()
-    out = [render_view(K[i], w2c[i], H, W, seed) for i in range(len(w2c))]
+    out = [render_view(K[i], w2c[i], H, W, seed, floor=floor) for i in range(len(w2c))]
     images, masks, depth, normals = (np.stack(x) for x in zip(*out))
     return SyntheticScene(images, masks, K, w2c, depth, normals, [f"view_{i:03d}" for i in range(len(w2c))])

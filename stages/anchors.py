@@ -55,6 +55,14 @@ class Params:
                                     "0 = the anchors' own matches only", lo=0)
     gauge_radius: float = param(0.8, "Robust radius the anchors' points are scaled to (object in the unit sphere)",
                                 lo=0.1, hi=1.0)
+    object_min_seen: float = param(0.5, "Without masks, the object's points are those at least this fraction of the "
+                                   "registered views see in their frame (the common frustum); the gauge, the grid box "
+                                   "and the mesh's crop are taken from them (manifoldneus/object_region.py)",
+                                   lo=0.0, hi=1.0)
+    object_gauge_percentile: float = param(99.0, "Without masks, the percentile of those points' distances mapped to "
+                                           "gauge_radius (with masks: the 95th of the foreground points). Higher "
+                                           "than with masks: an object that fills the frame has parts outside the "
+                                           "common frustum", lo=50.0, hi=100.0)
     identity_distance: float = param(3.0, "identity init: distance of the canonical camera from the origin", lo=0.5)
     perturb_rot_deg: list[float] = param([0.0, 0.0], "Experiments from a perturbed start (BARF): each anchor's initial "
                                          "rotation is turned by an angle drawn from [lo, hi] deg about a random axis "
@@ -152,6 +160,8 @@ def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Param
                                            prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px,
                                            final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px,
                                            gauge_radius=p.gauge_radius, masks=masks,
+                                           object_min_seen=p.object_min_seen,
+                                           object_gauge_percentile=p.object_gauge_percentile,
                                            seed=ctx.section("run").seed, log=ctx.log.info)
 
 

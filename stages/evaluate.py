@@ -11,6 +11,7 @@
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -187,6 +188,8 @@ def run(ctx) -> None:
         trainer = evaluation.trainer_from_checkpoint(final_dir / "model.pt", posefree.subset_views(views, ids, final["w2c"]),
                                                      ctx.section("run").device)
         test_w2c = evaluation.gt_in_model_frame(al, gt["w2c"])
+        if views.masks is None and "masks" in gt:  # scored on the object too, as a masked run is
+            views = dataclasses.replace(views, masks=gt["masks"])
         report["novel_views"] = evaluation.novel_views(trainer, views, held, test_w2c, ctx.out / "novel_views",
                                                        ctx.progress)
     io.save_json(ctx.out / "evaluation.json", report)

@@ -27,11 +27,16 @@ def run(ctx) -> None:
     if len(gt["w2c"]) != len(names):
         raise scenes.SceneError(f"{len(gt['w2c'])} ground-truth poses for {len(names)} views")
     arrays = {k: gt[k] for k in ("w2c", "normalization")}
-    # the layout's own intrinsics, for the error of those the method estimates (when it started from others)
+    # the layout's own intrinsics, for the error of those the method estimates (when it started from others), and
+    # its masks, for the GT-pose reference surface when the method runs without them
+    own = scenes.layout_reference(ctx.scene_ref, ctx.params) if (
+        meta["intrinsics_source"] != "calibrated" or not ctx.params.load_masks) else {}
     K = (io.load_arrays(ctx.input("ingest") / "views.zarr", ["K"])["K"] if meta["intrinsics_source"] == "calibrated"
-         else scenes.layout_intrinsics(ctx.scene_ref, ctx.params))
+         else own.get("K"))
     if K is not None:
         arrays["K"] = K
+    if own.get("masks") is not None:
+        arrays["masks"] = own["masks"]
     if "surface_points" in gt:
         arrays["surface_points"] = gt["surface_points"]
     io.save_arrays(ctx.out / "poses.zarr", arrays, chunk_first=False)

@@ -34,6 +34,8 @@ class Params:
                                              "world_mat projects into (centre-cropped to a square, resized)")
     synthetic_views: int = param(49, "Synthetic scene: number of views", lo=2, hi=400)
     synthetic_resolution: int = param(192, "Synthetic scene: image side in pixels", lo=32, hi=1024)
+    synthetic_floor: bool = param(False, "Synthetic scene: the object stands on a textured floor (background, not in "
+                                  "the masks), like an object on a table")
     synthetic_surface_points: int = param(200000, "Synthetic scene: exact surface samples for Chamfer", lo=1000)
 
 

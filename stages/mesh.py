@@ -1,7 +1,9 @@
 """mesh: the final model's surface, and the export of the method's result.
 
-SDF on a grid inside the unit sphere -> marching cubes -> largest component(s) -> culled by the
-training views' dilated masks (when masks exist) -> cropped to the surface some training view sees. Output frame: the normalised object frame the
+SDF on a grid inside the unit sphere -> marching cubes -> largest component(s) -> the sphere's closure
+removed -> culled by the training views' dilated masks (when masks exist), or, without masks, cropped to
+the object's region the anchors found (ball and support plane) -> cropped to the surface some training
+view sees. Output frame: the normalised object frame the
 method built (anchors' points median-centred, robust radius `anchors.gauge_radius`); the mesh
 (``mesh.ply``) and the poses (``colmap/`` text model, ``poses.zarr``) are both in it.
 """
@@ -9,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from manifoldneus import artifacts, evaluation, export, io, posefree
+from manifoldneus import artifacts, evaluation, export, io, object_region, posefree
 
 Params = evaluation.MeshParams
-UPSTREAM = ("ingest", "successors")
+UPSTREAM = ("ingest", "anchors", "successors")
 SECTIONS = ("meshing", "run")
 OUTPUTS = ("mesh.ply", "poses.zarr", "colmap")
 
@@ -26,7 +28,9 @@ def run(ctx) -> None:
     trainer = evaluation.trainer_from_checkpoint(final / "model.pt", posefree.subset_views(views, ids, w2c),
                                                  ctx.section("run").device)
     masks = None if views.masks is None else views.masks[ids]
-    mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3])
+    found = io.load_json(ctx.input("anchors") / "round_0" / "round.json")["init"].get("object_region")
+    region = None if found is None else object_region.ObjectRegion.from_json(found)
+    mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3], region)
     evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params, w2c=w2c[ids])
     io.save_arrays(ctx.out / "poses.zarr", {"w2c": w2c, "placed": placed}, chunk_first=False)
     h, w = views.images.shape[1:3]

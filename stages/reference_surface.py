@@ -1,11 +1,12 @@
 """reference_surface: REFERENCE, NOT THE METHOD. The neural surface trained with ground-truth
-poses (a GT reader by design). It gives the upper bound the pose-free rounds are compared to,
+poses, and the layout's own intrinsics and masks (a GT reader by design). It gives the upper bound the pose-free rounds are compared to,
 and, on DTU (whose official point clouds are not here), the mesh that Chamfer is measured
 against, labelled as such. Held-out views (split.holdout_every) are scored for novel-view
 synthesis at the training resolution.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -37,8 +38,12 @@ def run(ctx) -> None:
         ctx.log.info("no reference surface: %s", why)
         io.save_json(ctx.out / "reference.json", {"trained": False, "why": why})
         return
-    w2c = io.load_arrays(ctx.input("ground_truth") / "poses.zarr", ["w2c"])["w2c"]
-    views = artifacts.load_views(ctx.input("ingest"), w2c)
+    # ground truth through and through: the layout's poses, calibration and masks (when the method runs without)
+    gt = io.load_arrays(ctx.input("ground_truth") / "poses.zarr")
+    w2c = gt["w2c"]
+    views = artifacts.load_views(ctx.input("ingest"), w2c, gt.get("K"))
+    if views.masks is None and "masks" in gt:
+        views = dataclasses.replace(views, masks=gt["masks"])
     held = holdout_mask(len(views.names), ctx.section("split"))
     run_p = ctx.section("run")
     tp = ctx.section("train")

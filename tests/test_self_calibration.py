@@ -64,4 +64,6 @@ def test_use_calibration_false_starts_from_the_uncalibrated_guess(tmp_path):
     h, w = views["images"].shape[1:3]
     assert views["intrinsics_source"] == "default"
     assert np.allclose(views["K"], scenes.default_intrinsics(h, w))
-    assert np.allclose(scenes.layout_intrinsics(scenes.resolve_scene("synthetic"), p), synthetic.intrinsics(h, w))
+    own = scenes.layout_reference(scenes.resolve_scene("synthetic"), p)
+    assert np.allclose(own["K"], synthetic.intrinsics(h, w))
+    assert own["masks"] is not None and own["masks"].shape == views["masks"].shape

@@ -1,0 +1,116 @@
+"""Unmasked captures (issue 13 item 2): the object found from the cameras and the SfM points alone,
+and the mesh cropped to it. Geometry on generated points, then the pipeline on the synthetic scene
+standing on a textured floor, without masks (CPU, tiny iteration counts)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+import pipeline
+from manifoldneus import cameras, io, meshing, object_region, pose_metrics, synthetic
+from tests.conftest import TINY
+
+N_VIEWS = 20
+
+
+def _views(n: int = N_VIEWS, size: int = 128):
+    w2c = synthetic.camera_poses(n)
+    K = np.broadcast_to(synthetic.intrinsics(size, size), (n, 3, 3)).copy()
+    return K, w2c, np.tile([size, size], (n, 1))
+
+
+def _observed_surface(n: int, seed: int) -> np.ndarray:
+    """Points of the object's surface some view sees (an SfM reconstruction has no others)."""
+    K, w2c, sizes = _views()
+    pts = synthetic.sample_surface(n, seed=seed)
+    return pts[synthetic.points_visible(pts, K, w2c, *sizes[0])]
+
+
+def _floor_points(n: int, rng) -> np.ndarray:
+    r = synthetic.FLOOR_RADIUS * np.sqrt(rng.uniform(0, 1, n))
+    a = rng.uniform(0, 2 * np.pi, n)
+    return np.stack([r * np.cos(a), r * np.sin(a), np.full(n, synthetic.FLOOR_Z)], 1)
+
+
+def test_the_aim_point_is_where_the_cameras_look():
+    _, w2c, _ = _views()
+    assert np.linalg.norm(object_region.aim_point(w2c)) < 1e-9  # synthetic cameras look at the origin
+    shifted = cameras.transform_w2c(w2c, 1.0, np.eye(3), np.array([0.3, -0.2, 0.1]))
+    assert np.allclose(object_region.aim_point(shifted), [0.3, -0.2, 0.1], atol=1e-9)
+
+
+def test_the_common_frustum_keeps_the_object_and_drops_the_background():
+    rng = np.random.default_rng(0)
+    K, w2c, sizes = _views()
+    obj = _observed_surface(2500, seed=1)
+    wall = np.stack([rng.uniform(-6, 6, 1000), np.full(1000, 4.0), rng.uniform(-3, 5, 1000)], 1)  # behind it
+    region, keep = object_region.locate(np.concatenate([obj, wall]), K, w2c, sizes, find_plane=False)
+    assert keep[:len(obj)].mean() > 0.99 and keep[len(obj):].mean() < 0.2
+    lo, hi = synthetic.bounding_box()
+    assert 0.4 * np.linalg.norm(hi - lo) < region.radius < 0.75 * np.linalg.norm(hi - lo)  # about the half-diagonal
+    assert region.contains(obj).mean() > 0.99 and region.contains(wall).mean() < 0.1
+
+
+def test_the_support_plane_is_found_under_the_object_and_a_roof_is_not_one():
+    rng = np.random.default_rng(0)
+    K, w2c, sizes = _views()
+    obj = _observed_surface(2500, seed=1)
+    floor = _floor_points(1500, rng)
+    region, _ = object_region.locate(np.concatenate([obj, floor]), K, w2c, sizes)
+    assert region.plane is not None
+    n, d = np.asarray(region.plane[:3]), region.plane[3]
+    assert np.degrees(np.arccos(np.clip(n @ [0, 0, 1], -1, 1))) < 2.0  # facing up, towards the cameras
+    assert abs(-d - synthetic.FLOOR_Z) < 0.01
+    above = region.contains(obj, 0.02 * region.radius)
+    assert above[obj[:, 2] > synthetic.FLOOR_Z + 0.05].mean() > 0.99  # the object stays
+    assert region.contains(floor, 0.02 * region.radius).mean() == 0  # the floor goes
+    # the object alone: its flat top has most points beyond it, so it is no support
+    alone, _ = object_region.locate(obj, K, w2c, sizes)
+    assert alone.plane is None
+
+
+def test_the_sphere_closure_is_removed_and_the_surface_kept():
+    big = meshing.extract_mesh(lambda p: np.linalg.norm(p, axis=1) - 1.5, 48, radius=1.0)  # leaks: closed by the sphere
+    assert len(big.faces) and not meshing.off_sphere_closure(np.asarray(big.vertices), 1.0, 48).any()
+    small = meshing.extract_mesh(lambda p: np.linalg.norm(p, axis=1) - 0.5, 48, radius=1.0)
+    assert meshing.off_sphere_closure(np.asarray(small.vertices), 1.0, 48).all()
+
+
+@pytest.fixture(scope="module")
+def on_a_floor(tmp_path_factory):
+    root = tmp_path_factory.mktemp("floor")
+    pipeline.run("synthetic", until="mesh", artifacts=root, overrides=[
+        *TINY, "ingest.synthetic_floor=true", "ingest.load_masks=false", "reference_surface.enabled=false"])
+    return pipeline.Store(root, "synthetic")
+
+
+def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_it(on_a_floor):
+    store = on_a_floor
+    anchors = store.version_dir("anchors", store.current("anchors"))
+    init = io.load_json(anchors / "round_0" / "round.json")["init"]
+    assert init["gauge_points"] == "common frustum"
+    region = object_region.ObjectRegion.from_json(init["object_region"])
+    assert region.plane is not None
+    # into the world frame through the anchors' poses against the ground truth
+    poses = io.load_arrays(anchors / "initial_poses.zarr")
+    ids = np.flatnonzero(poses["placed"].astype(bool))
+    al = pose_metrics.evaluate_poses(poses["w2c"], synthetic.camera_poses(N_VIEWS), valid=poses["placed"].astype(bool))
+    al = al["alignment"]
+    s, R, t = al["s"], np.asarray(al["R"]), np.asarray(al["t"])
+    assert len(ids) >= 3
+    normal_world = R @ np.asarray(region.plane[:3])
+    assert np.degrees(np.arccos(np.clip(normal_world @ [0, 0, 1], -1, 1))) < 5.0
+    # the observed surface, in the gauge frame, lies in the region above the floor
+    surf = synthetic.sample_surface(3000, seed=2)
+    surf = surf[surf[:, 2] > synthetic.FLOOR_Z + 0.05]
+    surf_gauge = (surf - t) @ R / s
+    assert region.contains(surf_gauge, 0.02 * region.radius).mean() > 0.95
+    # the plane is the floor: its points lie within a few percent of the region's radius from it (the anchors'
+    # 6 views at 128 px triangulate ~100 points: a real capture has thousands)
+    floor_gauge = (_floor_points(1000, np.random.default_rng(3)) - t) @ R / s
+    assert np.percentile(np.abs(floor_gauge @ region.plane[:3] + region.plane[3]), 95) < 0.05 * region.radius
+    # the mesh of the (tiny) model keeps to the region
+    mesh = trimesh.load(store.version_dir("mesh", store.current("mesh")) / "mesh.ply", process=False)
+    if len(mesh.faces):
+        assert region.contains(np.asarray(mesh.vertices), 0.0).all()
