@@ -98,9 +98,9 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def finish(scene: str, runs: list[dict], label: str, out_dir: Path) -> Path:
+def finish(scene: str, runs: list[dict], label: str, out_dir: Path, commit: str | None = None) -> Path:
     summary = summarise(runs)
-    result = {"scene": scene, "seeds": sorted({r["seed"] for r in runs}), "commit": git_commit(),
+    result = {"scene": scene, "seeds": sorted({r["seed"] for r in runs}), "commit": commit or git_commit(),
               "date": dt.date.today().isoformat(), "systems": SYSTEMS, "runs": runs, "summary": summary,
               "targets": targets(summary)}
     path = out_dir / "own_photos" / f"{label}-{result['date']}.json"
@@ -124,7 +124,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.merge:
         parts = [json.loads(p.read_text()) for p in a.merge]
-        finish(parts[0]["scene"], [r for p in parts for r in p["runs"]], a.label, a.out_dir)
+        commits = sorted({str(p["commit"]) for p in parts})  # the code the runs measured, not the merge's
+        finish(parts[0]["scene"], [r for p in parts for r in p["runs"]], a.label, a.out_dir, " + ".join(commits))
         return 0
     systems = [s.strip() for s in a.systems.split(",") if s.strip()]
     unknown = set(systems) - set(SYSTEMS)
