@@ -105,13 +105,15 @@ class ObjectRegion:
 
 def locate(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, sizes: np.ndarray, min_seen: float = 0.5,
            radius_percentile: float = 99.0, radius_margin: float = 0.15, plane_tol: float = 0.02,
-           find_plane: bool = True) -> tuple[ObjectRegion, np.ndarray]:
+           find_plane: bool = True, seen: np.ndarray | None = None) -> tuple[ObjectRegion, np.ndarray]:
     """The object's region from SfM points [P,3] and the views that made them (K, w2c, sizes as in
     :func:`seen_fraction`), in their frame; and the bool [P] of the object's points: those at least
-    ``min_seen`` of the views see. Radius: the ``radius_percentile``-th distance of those points from
-    their median, plus ``radius_margin`` of it; support plane within ``plane_tol`` of that radius."""
+    ``min_seen`` of the views see (``seen``, when the caller has it already: the fraction does not change
+    under a similarity). Radius: the ``radius_percentile``-th distance of those points from their
+    median, plus ``radius_margin`` of it; support plane within ``plane_tol`` of that radius."""
     points = np.asarray(points, np.float64)
-    seen = seen_fraction(points, K, w2c, sizes) >= min_seen if len(points) else np.zeros(0, bool)
+    if seen is None:
+        seen = seen_fraction(points, K, w2c, sizes) >= min_seen if len(points) else np.zeros(0, bool)
     source = "common frustum"
     if seen.sum() < 20:  # too few points in every view's frame: use all of them
         seen, source = np.ones(len(points), bool), "all points"

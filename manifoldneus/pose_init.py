@@ -200,7 +200,8 @@ def init_from_matches(
     w2c = transform_w2c(w2c, s, np.eye(3), -s * centre)
     region = None
     if len(pts) and len(reg):
-        region, _ = object_region.locate(s * (pts - centre), rec["K"][reg], w2c[reg], sizes_l[reg], object_min_seen)
+        region, _ = object_region.locate(s * (pts - centre), rec["K"][reg], w2c[reg], sizes_l[reg], object_min_seen,
+                                         seen=None if masks is not None else in_mask)
 
     method = ["mapped" if placed[a] else "" for a in range(V)]
     unplaced, why = [], {}
