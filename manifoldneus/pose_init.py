@@ -132,6 +132,7 @@ def init_from_matches(
     masks: Sequence[np.ndarray] | None = None,
     object_min_seen: float = 0.5,
     object_gauge_percentile: float = 99.0,
+    principal_point_p: float | None = None,
     log: Callable[[str], None] | None = None,
 ) -> InitResult:
     """Initial poses of the views ``view_ids`` (the anchors) from our verified matches, by
@@ -142,7 +143,7 @@ def init_from_matches(
     indexed by **global** view id; only pairs with both views in ``view_ids`` are used. sizes [N,2]
     (H, W) default to twice the principal point. refine: intrinsics bundle adjustment may change
     (``sfm.REFINABLE``); prior_focal: whether K's focal length is known (EXIF or calibration) or a
-    guess. final_ba_loss / final_ba_scale_px: the robust loss of a last bundle adjustment after
+    guess; principal_point_p: see :func:`manifoldneus.sfm.map_views`. final_ba_loss / final_ba_scale_px: the robust loss of a last bundle adjustment after
     COLMAP's (whose global adjustments are plain least squares), "trivial" = none. masks (optional, one [H,W] bool per entry of ``view_ids``): the gauge's robust extent is
     then measured on the points seen mostly inside the foreground (when there are >= 20 of them);
     without masks, at the ``object_gauge_percentile``-th percentile of the points at least
@@ -177,7 +178,7 @@ def init_from_matches(
     rec = sfm.map_views(names, Kl, sizes_l, [keypoints[g] for g in view_ids], local_pairs, refine=refine,
                         prior_focal=prior_focal, seed=seed, min_num_matches=min_num_matches, reproj_px=reproj_px,
                         min_tri_angle_deg=min_angle_deg, final_ba_loss=final_ba_loss,
-                        final_ba_scale_px=final_ba_scale_px, log=say)
+                        final_ba_scale_px=final_ba_scale_px, principal_point_p=principal_point_p, log=say)
     placed = rec["registered"]
     pts = rec["points"]
 
@@ -230,6 +231,7 @@ def init_from_matches(
         "n_observations": int(len(rec["obs_view"])),
         "mean_reproj_px": rec["mean_reproj_px"],
         "refine_intrinsics": list(refine),
+        "principal_point_test": rec["principal_point_test"],
         "K": refined_K[np.flatnonzero(placed)[0]].tolist() if placed.any() else Kl[0].tolist(),
         "gauge_scale": float(s),
         "gauge_centre": centre.tolist(),

@@ -13,7 +13,9 @@ keypoints and K pass through unchanged. Cameras are SIMPLE_PINHOLE (f, cx, cy) o
 Intrinsics: one COLMAP camera per distinct K (a folder of one image size is one shared camera,
 so a refined focal length is shared by every view taken with it). ``refine`` names what bundle
 adjustment may change: ``()`` holds K fixed; any of ``"focal"``, ``"principal_point"``,
-``"radial"`` frees it.
+``"radial"`` frees it. The principal point is poorly determined at a narrow field of view with few
+views (it trades against the rotations), so where ``principal_point_p`` is given it is freed only
+when that lowers the reprojection error significantly (:func:`free_principal_point`).
 """
 from __future__ import annotations
 
@@ -245,33 +247,93 @@ def robust_bundle_adjustment(rec, refine: Sequence[str] = (), loss: str = "cauch
     pycolmap.bundle_adjustment(rec, opts)
 
 
+def reprojection_sq_errors(rec) -> np.ndarray:
+    """Squared reprojection errors [O] (px^2) of every observation of a reconstruction's points, in a fixed
+    order (image id, then keypoint), so that two adjustments of one reconstruction compare term by term."""
+    out = []
+    for image_id in sorted(rec.images):
+        image = rec.images[image_id]
+        if not image.has_pose:
+            continue
+        obs = [(p2d.xy, rec.points3D[p2d.point3D_id].xyz) for p2d in image.points2D if p2d.has_point3D()]
+        if not obs:
+            continue
+        uv = np.array([o[0] for o in obs], np.float64)  # [M,2]
+        X = np.array([o[1] for o in obs], np.float64)  # [M,3]
+        K, _ = K_of_camera(image.camera)
+        M = np.asarray(image.cam_from_world().matrix(), np.float64)  # [3,4]
+        x = (X @ M[:, :3].T + M[:, 3]) @ K.T  # [M,3]
+        out.append(((x[:, :2] / x[:, 2:3] - uv) ** 2).sum(1))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def free_principal_point(rec, refine: Sequence[str], p_value: float, loss: str = "trivial", scale_px: float = 1.0,
+                         inlier_px: float = 4.0):
+    """Whether freeing the principal point is worth it (a likelihood-ratio test between nested models).
+
+    ``rec`` was adjusted with ``refine`` minus the principal point; a copy is adjusted again with it free.
+    Over the observations within ``inlier_px`` in both, chi2 = (SSE_fixed - SSE_free) / sigma^2 with
+    sigma^2 the free fit's mean squared error per coordinate; the free
+    fit is kept when chi2 exceeds the chi-square (2 dof) quantile at ``p_value`` (1 = always). Returns
+    (the reconstruction to keep, a record of the test)."""
+    import copy
+
+    from scipy.stats import chi2 as chi_square
+
+    free = copy.deepcopy(rec)
+    robust_bundle_adjustment(free, refine, loss, scale_px)
+    e_fixed, e_free = reprojection_sq_errors(rec), reprojection_sq_errors(free)
+    inliers = (e_fixed < inlier_px ** 2) & (e_free < inlier_px ** 2)
+    sigma2 = max(float(e_free[inliers].mean()) / 2, 1e-12) if inliers.any() else 1.0  # per coordinate
+    statistic = float((e_fixed[inliers].sum() - e_free[inliers].sum()) / sigma2)
+    threshold = float(chi_square.isf(p_value, 2))
+    keep = statistic > threshold
+    pp = [list(K_of_camera(c)[0][:2, 2]) for c in (next(iter(r.cameras.values())) for r in (rec, free))]
+    record = {"chi2": statistic, "threshold": threshold, "p_value": p_value, "n_observations": int(inliers.sum()),
+              "sigma_px": float(np.sqrt(sigma2)), "principal_point_fixed": pp[0], "principal_point_free": pp[1],
+              "freed": bool(keep)}
+    return (free if keep else rec), record
+
+
 def map_views(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, keypoints: Sequence[np.ndarray],
               pairs: Sequence, *, refine: Sequence[str] = (), prior_focal: bool = True, num_threads: int = 1,
               seed: int = 0, min_num_matches: int = 15, reproj_px: float = 4.0, min_tri_angle_deg: float = 1.5,
-              final_ba_loss: str = "trivial", final_ba_scale_px: float = 1.0, log=None) -> dict:
+              final_ba_loss: str = "trivial", final_ba_scale_px: float = 1.0, principal_point_p: float | None = None,
+              log=None) -> dict:
     """Our features -> COLMAP database -> incremental mapping (-> a robust bundle adjustment unless
-    ``final_ba_loss`` is "trivial"); everything indexed like ``names``.
+    ``final_ba_loss`` is "trivial"); everything indexed like ``names``. With ``principal_point_p`` and
+    the principal point in ``refine``, it is held at its start until :func:`free_principal_point` at
+    that p-value says freeing it pays.
 
     Returns :func:`read_poses`'s dict plus :func:`observations`' (empty without a model), ``n_models``,
-    ``reconstruction`` and ``seconds``."""
+    ``reconstruction``, ``seconds`` and ``principal_point_test`` (the test's record, or None)."""
     import pycolmap
 
     say = log or (lambda s: None)
     t0 = time.perf_counter()
     pycolmap.set_random_seed(seed)
+    test_pp = principal_point_p is not None and "principal_point" in refine
+    first = tuple(r for r in refine if r != "principal_point") if test_pp else tuple(refine)
     with tempfile.TemporaryDirectory(prefix="manifoldneus_sfm_") as tmp:
         db = Path(tmp) / "database.db"
         write_database(db, names, K, sizes, keypoints, pairs, radial="radial" in refine, prior_focal=prior_focal)
-        opts = mapping_options(refine, num_threads=num_threads, seed=seed, min_num_matches=min_num_matches,
+        opts = mapping_options(first, num_threads=num_threads, seed=seed, min_num_matches=min_num_matches,
                                reproj_px=reproj_px, min_tri_angle_deg=min_tri_angle_deg)
         rec, n_models = incremental_mapping(db, opts, Path(tmp))
     if rec is not None and final_ba_loss != "trivial":
-        robust_bundle_adjustment(rec, refine, final_ba_loss, final_ba_scale_px)
+        robust_bundle_adjustment(rec, first, final_ba_loss, final_ba_scale_px)
+    pp_test = None
+    if rec is not None and test_pp:
+        rec, pp_test = free_principal_point(rec, refine, principal_point_p, final_ba_loss, final_ba_scale_px,
+                                            inlier_px=reproj_px)
+        say(f"principal point {'freed' if pp_test['freed'] else 'kept'}: chi2 {pp_test['chi2']:.1f} vs "
+            f"{pp_test['threshold']:.1f} (p = {principal_point_p:g}), {pp_test['principal_point_fixed']} -> "
+            f"{pp_test['principal_point_free']}")
     out = read_poses(rec, names, K)
     empty = {"points": np.zeros((0, 3)), "obs_view": np.zeros(0, np.int64), "obs_point": np.zeros(0, np.int64),
              "obs_uv": np.zeros((0, 2))}
     out.update(observations(rec, names) if rec is not None else empty)
-    out.update(n_models=n_models, reconstruction=rec, seconds=time.perf_counter() - t0,
+    out.update(n_models=n_models, reconstruction=rec, seconds=time.perf_counter() - t0, principal_point_test=pp_test,
                mean_reproj_px=float(rec.compute_mean_reprojection_error()) if rec is not None else None)
     say(f"pycolmap mapping: {int(out['registered'].sum())}/{len(names)} views registered, {len(out['points'])} points, "
         f"{n_models} model(s), {out['seconds']:.1f} s")

@@ -3,8 +3,9 @@
 COLMAP's own SIFT extraction, exhaustive matching with its two-view verification, and
 incremental mapping (:mod:`manifoldneus.sfm`'s options), on the ingest's images. Intrinsics
 (``intrinsics``): ``fixed`` holds the ingest's K (PINHOLE from K; nothing refined); ``refine``
-starts from the ingest's K (one camera for one K) and refines the focal length by bundle
-adjustment; ``estimate`` starts from COLMAP's own guess; ``auto`` (default) is ``fixed`` for
+starts from the ingest's K (one camera for one K) and refines ``refine_intrinsics`` (focal length
+and principal point) by bundle adjustment; ``estimate`` starts from COLMAP's own guess and refines
+the same; ``auto`` (default) is ``fixed`` for
 calibrated or given intrinsics and ``refine`` when the ingest's K is an EXIF prior or a guess
 (``views.json``'s ``intrinsics_source``). The estimated focal length is in the metrics.
 
@@ -46,6 +47,11 @@ class Params:
         "auto", "fixed: the ingest's K held constant; refine: focal length refined from the ingest's K; estimate: "
         "COLMAP's own guess, refined; auto: fixed for calibrated or given intrinsics, else refine",
         choices=["auto", "fixed", "refine", "estimate"])
+    refine_intrinsics: list[str] = param(["focal", "principal_point"], "What refine and estimate change (the anchors' "
+                                         "self-calibration refines the same): focal, principal_point")
+    principal_point_p: float = param(1e-3, "The principal point is freed only when a likelihood-ratio test at this "
+                                     "p-value says it pays, as in the anchors' self-calibration (anchors."
+                                     "principal_point_p); 1 = always", lo=0.0, hi=1.0)
     max_features: int = param(8192, "COLMAP SIFT max_num_features per image", lo=1)
     num_threads: int = param(1, "Threads for COLMAP extraction, matching and mapping (-1 = all cores). COLMAP's "
                              "result is the same twice only single-threaded (measured: 2 threads moved a tiny scene's "
@@ -73,6 +79,8 @@ def run_colmap(
     work_dir: Path,
     *,
     intrinsics: str = "fixed",
+    refine: tuple = ("focal",),
+    principal_point_p: float = 1.0,
     max_features: int = 8192,
     num_threads: int = 1,
     seed: int = 0,
@@ -140,11 +148,17 @@ def run_colmap(
     t_extract = time.perf_counter() - t0
     say(f"pycolmap extraction + exhaustive matching: {t_extract:.2f} s")
 
-    opts = sfm.mapping_options(() if intrinsics == "fixed" else ("focal",), num_threads=num_threads, seed=seed,
-                               min_num_matches=min_num_matches)
+    refine = () if intrinsics == "fixed" else tuple(refine)
+    first = tuple(r for r in refine if r != "principal_point")  # the principal point only if the test says so
+    opts = sfm.mapping_options(first, num_threads=num_threads, seed=seed, min_num_matches=min_num_matches)
     opts.extract_colors = True
     t0 = time.perf_counter()
     rec, n_models = sfm.incremental_mapping(db, opts, work_dir, image_dir)
+    pp_test = None
+    if rec is not None and first != refine:
+        rec, pp_test = sfm.free_principal_point(rec, refine, principal_point_p)
+        say(f"principal point {'freed' if pp_test['freed'] else 'kept'} (chi2 {pp_test['chi2']:.1f} vs "
+            f"{pp_test['threshold']:.1f})")
     t_map = time.perf_counter() - t0
     say(f"pycolmap incremental mapping: {t_map:.2f} s, {n_models} model(s)")
     poses = sfm.read_poses(rec, names, K)
@@ -160,6 +174,7 @@ def run_colmap(
         "extract_match_seconds": float(t_extract),
         "mapping_seconds": float(t_map),
         "n_models": n_models,
+        "principal_point_test": pp_test,
     }
 
 
@@ -188,6 +203,7 @@ def run(ctx) -> None:
         with native_output_to(ctx.log_path):  # COLMAP's own log (hundreds of lines) goes to log.txt
             res = run_colmap(
                 image_dir, files, arrays["K"].astype(np.float64), tmp, intrinsics=intrinsics,
+                refine=tuple(p.refine_intrinsics), principal_point_p=p.principal_point_p,
                 max_features=p.max_features, num_threads=p.num_threads, seed=p.seed,
                 min_num_matches=p.min_num_matches, log=ctx.log,
             )
@@ -225,6 +241,8 @@ def run(ctx) -> None:
     ctx.metrics["extract_match_seconds"] = res["extract_match_seconds"]
     ctx.metrics["mapping_seconds"] = res["mapping_seconds"]
     ctx.metrics["intrinsics"] = intrinsics
+    if res["principal_point_test"] is not None:
+        ctx.metrics["principal_point_freed"] = res["principal_point_test"]["freed"]
     if reg.any():  # the focal length COLMAP ended with, beside the ingest's (they differ when refined)
         ctx.metrics["focal_px"] = float(np.mean(res["K"][reg][:, [0, 1], [0, 1]]))
         ctx.metrics["focal_px_ingest"] = float(np.mean(arrays["K"][reg][:, [0, 1], [0, 1]]))

@@ -393,3 +393,7 @@ def test_reference_refines_a_guessed_focal_length(tmp_path):
     f_true = K_true[:, [0, 1], [0, 1]].mean()
     assert abs(ctx.metrics["focal_px_ingest"] / f_true - 1.3) < 0.01
     assert abs(ctx.metrics["focal_px"] / f_true - 1) < 0.05, (ctx.metrics["focal_px"], f_true)
+    # the principal point started right: freed or not (the likelihood-ratio test), it stays near
+    assert isinstance(ctx.metrics["principal_point_freed"], bool)
+    K_out = io.load_arrays(tmp_path / "reference" / "poses.zarr", ["K"])["K"]
+    assert np.abs(K_out[:, :2, 2] - K_true[:, :2, 2]).max() < 0.02 * images.shape[2], K_out[0]
