@@ -69,6 +69,13 @@ def keep_vertices(mesh, keep):
     return out
 
 
+def near_points(vertices: np.ndarray, points: np.ndarray, distance: float) -> np.ndarray:
+    """bool [V]: vertices [V,3] within ``distance`` of one of the points [P,3]."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(np.asarray(points, np.float64)).query(vertices, distance_upper_bound=distance)[0] <= distance
+
+
 def off_sphere_closure(vertices: np.ndarray, radius: float, resolution: int) -> np.ndarray:
     """bool [V]: vertices [V,3] away from the sphere that closes the grid (:func:`sdf_grid`): where the SDF
     is still negative at the sphere, marching cubes puts surface on the sphere itself, which no view saw

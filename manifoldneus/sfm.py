@@ -288,7 +288,7 @@ def free_principal_point(rec, refine: Sequence[str], p_value: float, loss: str =
     statistic = float((e_fixed[inliers].sum() - e_free[inliers].sum()) / sigma2)
     threshold = float(chi_square.isf(p_value, 2))
     keep = statistic > threshold
-    pp = [list(K_of_camera(c)[0][:2, 2]) for c in (next(iter(r.cameras.values())) for r in (rec, free))]
+    pp = [[round(float(x), 2) for x in K_of_camera(next(iter(r.cameras.values())))[0][:2, 2]] for r in (rec, free)]
     record = {"chi2": statistic, "threshold": threshold, "p_value": p_value, "n_observations": int(inliers.sum()),
               "sigma_px": float(np.sqrt(sigma2)), "principal_point_fixed": pp[0], "principal_point_free": pp[1],
               "freed": bool(keep)}

@@ -9,7 +9,9 @@ Pose initialisation (``anchors.pose_init``):
 Intrinsics that are a guess or an EXIF prior (``anchors.intrinsics``) are first self-calibrated: one
 shared camera's focal length and principal point refined by COLMAP on every trainable view's matches
 (:func:`self_calibrate`), then held fixed from the anchors' initialisation on.
-Writes ``round_0/`` (see :mod:`manifoldneus.posefree`) and the initial poses of every anchor.
+Writes ``round_0/`` (see :mod:`manifoldneus.posefree`) and ``initial_poses.zarr``: the anchors' initial
+poses, their K and the object's SfM points (``object_points`` [P,3], gauge frame; the mesh stage's crop
+without masks).
 """
 from __future__ import annotations
 
@@ -115,14 +117,17 @@ def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndar
 
 
 def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Params
-                  ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """(w2c [N,4,4] of the anchors (identity elsewhere), K [N,3,3] the poses belong to, what was done)."""
+                  ) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
+    """(w2c [N,4,4] of the anchors (identity elsewhere), K [N,3,3] the poses belong to, what was done,
+    the object's SfM points [P,3] in the gauge frame: those in the foreground or the common frustum;
+    none for the identity and reference initialisations)."""
+    no_points = np.zeros((0, 3))
     n = len(inputs.names)
     w2c = np.tile(np.eye(4), (n, 1, 1))
     K = inputs.views.K
     if p.pose_init == "identity":
         w2c[anchors] = pose_init.identity_init(len(anchors), p.identity_distance)
-        return w2c, K, {"method": "identity"}
+        return w2c, K, {"method": "identity"}, no_points
     if p.pose_init == "reference":
         ref, registered = reference_poses(ctx.input("reference"), n, p.gauge_radius)
         if registered.any():  # pycolmap's intrinsics (refined when it refined them)
@@ -136,7 +141,7 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
             if not registered[a]:
                 nb = [j for j in np.argsort(-inputs.W[a]) if registered[j]]
                 w2c[a] = ref[nb[0]] if nb else np.eye(4)
-        return w2c, K, {"method": "reference", "unregistered": missing}
+        return w2c, K, {"method": "reference", "unregistered": missing}, no_points
     inputs, refine, calibration = calibrated_inputs(ctx, inputs, p)
     K = inputs.views.K
     res = matches_init(ctx, inputs, anchors, p, refine)
@@ -155,7 +160,7 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
     return w2c, K, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
                  "bridges": [int(v) for v in bridges], "unplaced": [inputs.names[v] for v in unplaced],
                  "why_unplaced": {inputs.names[v]: res.why_unplaced[v] for v in unplaced},
-                 **res.diagnostics, "calibration": calibration}
+                 **res.diagnostics, "calibration": calibration}, res.points[res.point_in_mask]
 
 
 def log_refined(ctx, refine, K_before: np.ndarray, K_after: np.ndarray, views: str) -> None:
@@ -268,7 +273,7 @@ def run(ctx) -> None:
         raise RuntimeError(f"only {len(anchors)} trainable anchor view(s); check schedule.anchor_percent and "
                            f"split.holdout_every")
     n = len(inputs.names)
-    w2c0, K, init_info = initial_poses(ctx, inputs, anchors, p)
+    w2c0, K, init_info, object_points = initial_poses(ctx, inputs, anchors, p)
     inputs = posefree.with_intrinsics(inputs, K)  # every round from here on uses them
     if max(p.perturb_rot_deg, default=0.0) > 0 or p.perturb_centre_frac > 0:
         w2c0[anchors] = perturbed(w2c0[anchors], p, ctx.section("run").seed)
@@ -277,7 +282,8 @@ def run(ctx) -> None:
                      p.perturb_rot_deg, p.perturb_centre_frac)
     placed = np.zeros(n, bool)
     placed[anchors] = True
-    io.save_arrays(ctx.out / "initial_poses.zarr", {"w2c": w2c0, "placed": placed, "K": K}, chunk_first=False)
+    io.save_arrays(ctx.out / "initial_poses.zarr", {"w2c": w2c0, "placed": placed, "K": K,
+                                                    "object_points": object_points.astype(np.float32)}, chunk_first=False)
     ctx.log.info("anchors %s initialised by %s", [inputs.names[a] for a in anchors], init_info["method"])
 
     s_tilde = inputs.schedule["s_tilde_rounds"][0]

@@ -2,8 +2,8 @@
 
 SDF on a grid inside the unit sphere -> marching cubes -> largest component(s) -> the sphere's closure
 removed -> culled by the training views' dilated masks (when masks exist), or, without masks, cropped to
-the object's region the anchors found (ball and support plane) -> cropped to the surface some training
-view sees. Output frame: the normalised object frame the
+the object's region the anchors found (ball and support plane) and to the surface near the object's SfM
+points (``meshing.point_support``) -> cropped to the surface some training view sees. Output frame: the normalised object frame the
 method built (anchors' points median-centred, robust radius `anchors.gauge_radius`); the mesh
 (``mesh.ply``) and the poses (``colmap/`` text model, ``poses.zarr``) are both in it.
 """
@@ -30,7 +30,9 @@ def run(ctx) -> None:
     masks = None if views.masks is None else views.masks[ids]
     found = io.load_json(ctx.input("anchors") / "round_0" / "round.json")["init"].get("object_region")
     region = None if found is None else object_region.ObjectRegion.from_json(found)
-    mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3], region)
+    object_points = io.load_arrays(ctx.input("anchors") / "initial_poses.zarr").get("object_points")
+    mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3], region,
+                                object_points)
     evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params, w2c=w2c[ids])
     io.save_arrays(ctx.out / "poses.zarr", {"w2c": w2c, "placed": placed}, chunk_first=False)
     h, w = views.images.shape[1:3]

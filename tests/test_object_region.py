@@ -77,6 +77,22 @@ def test_the_sphere_closure_is_removed_and_the_surface_kept():
     assert meshing.off_sphere_closure(np.asarray(small.vertices), 1.0, 48).all()
 
 
+def test_the_point_support_crop_drops_a_textureless_table_and_keeps_the_object():
+    """A ball on a table that gave no SfM points (scan24's white support): only the ball's surface is near a point."""
+    def sdf(p):
+        return np.minimum(np.linalg.norm(p, axis=1) - 0.4, np.abs(p[:, 2] + 0.6) - 0.02)
+
+    mesh = meshing.extract_mesh(sdf, 64, radius=1.0, keep_components=0)
+    V = np.asarray(mesh.vertices)
+    on_ball = np.abs(np.linalg.norm(V, axis=1) - 0.4) < 0.05
+    assert on_ball.any() and (~on_ball).sum() > on_ball.sum()  # the table is most of the surface
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(1000, 3))
+    points = 0.4 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)  # the ball's SfM points
+    keep = meshing.near_points(V, points, 0.12)
+    assert keep[on_ball].all() and not keep[~on_ball].any()
+
+
 @pytest.fixture(scope="module")
 def on_a_floor(tmp_path_factory):
     root = tmp_path_factory.mktemp("floor")
@@ -110,7 +126,11 @@ def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_i
     # 6 views at 128 px triangulate ~100 points: a real capture has thousands)
     floor_gauge = (_floor_points(1000, np.random.default_rng(3)) - t) @ R / s
     assert np.percentile(np.abs(floor_gauge @ region.plane[:3] + region.plane[3]), 95) < 0.05 * region.radius
-    # the mesh of the (tiny) model keeps to the region
+    # the object's SfM points are kept for the mesh's crop, in the gauge frame: on the object, not the floor
+    points = poses["object_points"]
+    assert len(points) >= 20 and region.contains(points, -0.05 * region.radius).mean() > 0.9
+    # the mesh of the (tiny) model keeps to the region and near those points
     mesh = trimesh.load(store.version_dir("mesh", store.current("mesh")) / "mesh.ply", process=False)
     if len(mesh.faces):
         assert region.contains(np.asarray(mesh.vertices), 0.0).all()
+        assert meshing.near_points(np.asarray(mesh.vertices), points, 0.12 + 1e-6).all()
