@@ -739,6 +739,8 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
             out.append(f"poses ({final['label']}, {final['n_views']} views, against ground truth after a Sim3): "
                        f"rotation {rot['mean']:.3f} deg mean, {rot['median']:.3f} median; centre "
                        f"{centre.get('mean', float('nan')):.3g} {units}".rstrip())
+        if ev.get("intrinsics"):
+            out.append(camera_line(ev["intrinsics"]))
         nvs = ev.get("novel_views", {}).get("summary", {})
         if nvs.get("psnr_masked") is not None:
             out.append(f"held-out views: masked PSNR {nvs['psnr_masked']:.2f} dB, SSIM {nvs.get('ssim_masked', 0):.3f}")
@@ -757,6 +759,20 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
     if "evaluate" in report:
         out.append(f"report:  make report SCENE={scene_name}")
     return "\n".join(out)
+
+
+def camera_line(intrinsics: dict) -> str:
+    """One line on the camera the poses ended with (evaluation.json's ``intrinsics``): what it started
+    from, and its error where the layout has a calibration."""
+    start, final = intrinsics["start"], intrinsics["final"]
+    line = (f"camera ({intrinsics['source']}): focal {final['focal_px']:.1f} px, principal point "
+            f"({final['principal_point_px'][0]:.1f}, {final['principal_point_px'][1]:.1f})")
+    if abs(start["focal_px"] - final["focal_px"]) > 1e-6 or start["principal_point_px"] != final["principal_point_px"]:
+        line += (f"; self-calibrated from {start['focal_px']:.1f} px, ({start['principal_point_px'][0]:.1f}, "
+                 f"{start['principal_point_px'][1]:.1f})")
+    if "focal_err_pct" in final:
+        line += f"; ground truth {intrinsics['ground_truth']['focal_px']:.1f} px, {final['focal_err_pct']:.2f} % off"
+    return line
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:

@@ -2,6 +2,8 @@
 complete, evaluation reports each round; a parameter change reruns only what depends on it."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -50,6 +52,26 @@ def test_rounds_and_evaluation(tiny_run):
         assert row["guard"]["checked"] and row["guard"]["kind"] == "reprojection" and row["guard"]["held_out"] > 0
         assert isinstance(row["guard"]["fired"], bool) and "start_summary" in row
     assert ev["placement"]["rot_err_deg"]["mean"] > 0  # the final views at the poses they were placed with
+
+
+def test_the_summary_says_what_the_run_found_and_where(tiny_run):
+    artifacts, report = tiny_run
+    text = pipeline.run_summary("synthetic", report, artifacts)
+    ev = io.load_json(artifacts / "synthetic" / "evaluate" / report.fingerprints["evaluate"] / "evaluation.json")
+    rot = ev["poses"][-1]["summary"]["rot_err_deg"]["mean"]
+    assert f"rotation {rot:.3f} deg mean" in text
+    focal = ev["intrinsics"]["final"]["focal_px"]
+    assert f"camera (calibrated): focal {focal:.1f} px, principal point (64.0, 64.0); ground truth {focal:.1f} px, " \
+           "0.00 % off" in text  # calibrated: nothing estimated
+    mesh = next(line for line in text.splitlines() if line.startswith("mesh:"))
+    assert Path(mesh.split(maxsplit=1)[1]).is_file()
+    # a self-calibrated camera says where it started
+    intr = {"source": "default", "start": {"focal_px": 960.0, "principal_point_px": [400.0, 300.0]},
+            "final": {"focal_px": 1436.4, "principal_point_px": [411.9, 313.0], "focal_err_pct": 0.52},
+            "ground_truth": {"focal_px": 1443.9, "principal_point_px": [411.6, 309.5]}}
+    assert pipeline.camera_line(intr) == ("camera (default): focal 1436.4 px, principal point (411.9, 313.0); "
+                                          "self-calibrated from 960.0 px, (400.0, 300.0); ground truth 1443.9 px, "
+                                          "0.52 % off")
 
 
 def test_alpha_change_reruns_schedule_and_after_only(tiny_run):
