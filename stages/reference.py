@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus import sfm
-from manifoldneus.config import param
+from manifoldneus.config import ParamError, param
 from manifoldneus.io import load_arrays, load_json, native_output_to, save_arrays
 
 
@@ -58,6 +58,11 @@ class Params:
                              "poses by 2.6e-3 between two runs)", lo=-1)
     seed: int = param(0, "Random seed of COLMAP's RANSAC and mapper", lo=0)
     min_num_matches: int = param(15, "Minimum verified matches of a pair used by the mapper", lo=1)
+
+    def __post_init__(self):
+        unknown = set(self.refine_intrinsics) - {"focal", "principal_point"}
+        if unknown:
+            raise ParamError(f"reference.refine_intrinsics: {sorted(unknown)} not among focal, principal_point")
 
 
 UPSTREAM = ("ingest",)

@@ -148,6 +148,8 @@ def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_p
         ("train.lr=inf", "train.lr: expected a finite number"),
         ("anchors.perturb_rot_deg=[5,3]", r"anchors.perturb_rot_deg: expected \[lo, hi\] with lo <= hi"),
         ("anchors.perturb_rot_deg=[-1,3]", "anchors.perturb_rot_deg: -1.0 is below the minimum 0.0"),
+        ("anchors.refine_intrinsics=[focal, skew]", r"anchors.refine_intrinsics: \['skew'\] not among"),
+        ("reference.refine_intrinsics=[radial]", r"reference.refine_intrinsics: \['radial'\] not among"),
     ],
 )
 def test_bad_set_is_a_clear_error(artifacts, override, message):
