@@ -91,7 +91,8 @@ class Round:
 
     def __init__(self, ctx, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
                  pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
-                 pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None):
+                 pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None,
+                 object_points: np.ndarray | None = None):
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
@@ -128,6 +129,12 @@ class Round:
             # the views whose poses learn (default all of the round's): local indices into ids
             pose_views=None if pose_ids is None else np.flatnonzero(np.isin(self.ids, np.asarray(pose_ids, int))),
         )
+        lp = ctx.section("loss")
+        if lp.w_free_space > 0 and inputs.views.masks is None and object_points is not None and len(object_points) >= 20:
+            from manifoldneus.losses import FreeSpace
+
+            self.trainer.free_space = FreeSpace(object_points, lp.free_space_dist, self.trainer.rp.radius,
+                                                device=self.trainer.device)
         if carry is not None:  # the field learned so far; poses restart at zero correction
             t = self.trainer
             t.field.load_state_dict(carry["field"])

@@ -257,6 +257,7 @@ class Trainer:
         self.history: list[dict] = []
         self.extra_state: dict = {}  # a caller's own per-run records, checkpointed with the trainer
         self.recorder = None  # callable(trainer, info) at every logged step, before that step's checkpoint
+        self.free_space = None  # losses.FreeSpace: no surface far from the object's points (runs without masks)
         if self.masks is not None and self.tp.fg_ray_fraction > 0:
             tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
             fg = self.masks[tv].reshape(-1).nonzero()[:, 0]
@@ -457,6 +458,10 @@ class Trainer:
         out = render_rays(self.field, b["o"], b["d"], self.rp, cache=self.cache, background=self.background,
                           band_weights=bw, perturb=True, train=True, want_normals=True)
         total, terms, status = compute_losses(out, b, self.lp)
+        if self.free_space is not None:
+            free = self.free_space(self.field.sdf, self.rng)
+            total = total + self.lp.w_free_space * free
+            terms["free_space"], status["free_space"] = float(free.detach()), "on"
         field_loss = float(total.detach())  # what the divergence check watches (the pose term jumps by design)
         lv = field_loss
         if self.pose_loss is not None and self.cams.active(self.step):

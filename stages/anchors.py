@@ -290,7 +290,8 @@ def run(ctx) -> None:
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     rnd = posefree.Round(ctx, inputs, anchors, w2c0, s_tilde, iters=p.iters, pose_lr=p.pose_lr,
                          pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
-                         pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight)
+                         pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
+                         object_points=object_points)
     summary = rnd.run(ctx, "anchors", ctx.checkpoint_dir / "round_0.pt")
     posefree.save_round(ctx.out / "round_0", rnd, placed, {
         "round": 0, "views": anchors, "names": [inputs.names[a] for a in anchors], "init": init_info,

@@ -134,3 +134,33 @@ def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_i
     if len(mesh.faces):
         assert region.contains(np.asarray(mesh.vertices), 0.0).all()
         assert meshing.near_points(np.asarray(mesh.vertices), points, 0.12 + 1e-6).all()
+
+
+def test_free_space_pushes_surface_away_from_the_points_only():
+    """The free-space term: a table with no SfM points is penalised; the ball the points lie on is not."""
+    import torch
+
+    from manifoldneus.losses import FreeSpace
+
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(1000, 3))
+    points = 0.4 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    free = FreeSpace(points, 0.12, radius=1.0, n_samples=8192)
+    g = torch.Generator().manual_seed(0)
+    ball = free(lambda x: x.norm(dim=1) - 0.4, g)
+    table = free(lambda x: torch.minimum(x.norm(dim=1) - 0.4, x[:, 2] + 0.6), g)
+    assert float(ball) == 0.0 and float(table) > 0.01  # below the table: inside its SDF, far from the ball
+    # its gradient moves the table's SDF up (out of the surface), where it is below the margin
+    h = torch.tensor(0.0, requires_grad=True)
+    free(lambda x: torch.minimum(x.norm(dim=1) - 0.4, x[:, 2] + 0.6 + h), g).backward()
+    assert float(h.grad) < 0
+
+
+def test_the_free_space_term_trains_an_unmasked_run(on_a_floor, tmp_path):
+    pipeline.run("synthetic", until="anchors", artifacts=tmp_path, overrides=[
+        *TINY, "ingest.synthetic_floor=true", "ingest.load_masks=false", "reference_surface.enabled=false",
+        "loss.w_free_space=1.0"])
+    store = pipeline.Store(tmp_path, "synthetic")
+    round_0 = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / "round.json")
+    assert round_0["train"]["loss_status"]["free_space"] == "on"
+    assert "loss_free_space" in round_0["history"][-1]
