@@ -166,14 +166,15 @@ class FreeSpace:
 
     def __init__(self, points: np.ndarray, distance: float, radius: float, n_samples: int = 2048,
                  margin: float = 0.01, grid: int = 64, device="cpu"):
-        from scipy.spatial import Delaunay, cKDTree
+        from scipy.spatial import Delaunay
+
+        from manifoldneus.meshing import near_points
 
         self.radius, self.n_samples, self.margin, self.grid = float(radius), int(n_samples), float(margin), int(grid)
         axis = (np.arange(grid) + 0.5) / grid * 2 * radius - radius
         centres = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)  # [G^3,3]
         cell_half_diagonal = np.sqrt(3) * radius / grid
-        near = cKDTree(np.asarray(points, np.float64)).query(
-            centres, distance_upper_bound=distance + cell_half_diagonal)[0] <= distance + cell_half_diagonal
+        near = near_points(centres, points, distance + cell_half_diagonal)
         inside = Delaunay(np.asarray(points, np.float64)).find_simplex(centres) >= 0  # the object's inside is far
         self.far = torch.as_tensor(~near & ~inside, device=device)  # [G^3] bool: from its surface points too
 

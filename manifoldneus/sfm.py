@@ -26,6 +26,8 @@ from typing import Sequence
 
 import numpy as np
 
+from .cameras import project_points
+
 REFINABLE = ("focal", "principal_point", "radial")
 
 
@@ -260,22 +262,20 @@ def reprojection_sq_errors(rec) -> np.ndarray:
             continue
         uv = np.array([o[0] for o in obs], np.float64)  # [M,2]
         X = np.array([o[1] for o in obs], np.float64)  # [M,3]
-        K, _ = K_of_camera(image.camera)
         M = np.asarray(image.cam_from_world().matrix(), np.float64)  # [3,4]
-        x = (X @ M[:, :3].T + M[:, 3]) @ K.T  # [M,3]
-        out.append(((x[:, :2] / x[:, 2:3] - uv) ** 2).sum(1))
+        out.append(((project_points(K_of_camera(image.camera)[0], X @ M[:, :3].T + M[:, 3]) - uv) ** 2).sum(1))
     return np.concatenate(out) if out else np.zeros(0)
 
 
 def free_principal_point(rec, refine: Sequence[str], p_value: float, loss: str = "trivial", scale_px: float = 1.0,
-                         inlier_px: float = 4.0):
+                         inlier_px: float = 4.0, log=None):
     """Whether freeing the principal point is worth it (a likelihood-ratio test between nested models).
 
     ``rec`` was adjusted with ``refine`` minus the principal point; a copy is adjusted again with it free.
     Over the observations within ``inlier_px`` in both, chi2 = (SSE_fixed - SSE_free) / sigma^2 with
     sigma^2 the free fit's mean squared error per coordinate; the free
     fit is kept when chi2 exceeds the chi-square (2 dof) quantile at ``p_value`` (1 = always). Returns
-    (the reconstruction to keep, a record of the test)."""
+    (the reconstruction to keep, a record of the test), which ``log`` is told."""
     import copy
 
     from scipy.stats import chi2 as chi_square
@@ -292,6 +292,9 @@ def free_principal_point(rec, refine: Sequence[str], p_value: float, loss: str =
     record = {"chi2": statistic, "threshold": threshold, "p_value": p_value, "n_observations": int(inliers.sum()),
               "sigma_px": float(np.sqrt(sigma2)), "principal_point_fixed": pp[0], "principal_point_free": pp[1],
               "freed": bool(keep)}
+    if log is not None:
+        log(f"principal point {'freed' if keep else 'kept'}: chi2 {statistic:.1f} vs {threshold:.1f} "
+            f"(p = {p_value:g}), {pp[0]} -> {pp[1]}")
     return (free if keep else rec), record
 
 
@@ -325,10 +328,7 @@ def map_views(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, keypoints:
     pp_test = None
     if rec is not None and test_pp:
         rec, pp_test = free_principal_point(rec, refine, principal_point_p, final_ba_loss, final_ba_scale_px,
-                                            inlier_px=reproj_px)
-        say(f"principal point {'freed' if pp_test['freed'] else 'kept'}: chi2 {pp_test['chi2']:.1f} vs "
-            f"{pp_test['threshold']:.1f} (p = {principal_point_p:g}), {pp_test['principal_point_fixed']} -> "
-            f"{pp_test['principal_point_free']}")
+                                            inlier_px=reproj_px, log=say)
     out = read_poses(rec, names, K)
     empty = {"points": np.zeros((0, 3)), "obs_view": np.zeros(0, np.int64), "obs_point": np.zeros(0, np.int64),
              "obs_uv": np.zeros((0, 2))}

@@ -30,7 +30,7 @@ def run(ctx) -> None:
     masks = None if views.masks is None else views.masks[ids]
     found = io.load_json(ctx.input("anchors") / "round_0" / "round.json")["init"].get("object_region")
     region = None if found is None else object_region.ObjectRegion.from_json(found)
-    object_points = io.load_arrays(ctx.input("anchors") / "initial_poses.zarr").get("object_points")
+    object_points = io.load_arrays(ctx.input("anchors") / "initial_poses.zarr", ["object_points"])["object_points"]
     mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3], region,
                                 object_points)
     evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params, w2c=w2c[ids])
