@@ -39,6 +39,11 @@ class LossParams:
                                 "to stand in front of the object. 0 = off (not yet measured as a default)", lo=0.0)
     free_space_dist: float = param(0.12, "Distance (gauge units) from the object's points beyond which the free-space "
                                    "term applies (meshing.point_support crops the mesh at the same rule)", lo=0.0)
+    free_space_kind: str = param("sight_lines", "Free space where: 'sight_lines' (between each anchor camera and the "
+                                 "SfM points it observes) or 'far_from_points' (far from every object point)",
+                                 choices=["sight_lines", "far_from_points"])
+    sight_stop: float = param(0.05, "sight_lines: the free segment stops this far (gauge units) before the point",
+                              lo=0.0)
 
 
 LOSS_NAMES = ("rgb", "eikonal", "mask", "depth", "normal")
@@ -186,3 +191,36 @@ class FreeSpace:
         if not bool(keep.any()):
             return x.new_zeros(())
         return F.relu(self.margin - sdf_fn(x[keep]).reshape(-1)).mean()
+
+
+class SightLines:
+    """Free space along lines of sight: a camera that observes an SfM point sees nothing in front of it, so
+    between the camera centre and the point (``lines`` [O,2,3]: origin, point; the field's frame) the SDF is
+    positive. At ``n_samples`` random points on random segments, stopped ``stop`` before the point and kept
+    inside the ball of ``radius``: mean(relu(margin - sdf)). The object's own points and the background's
+    both carve: the first clear what stands in front of the object, the second what hangs around its
+    silhouette."""
+
+    def __init__(self, lines: np.ndarray, stop: float, radius: float, n_samples: int = 2048, margin: float = 0.01,
+                 device="cpu"):
+        lines = np.asarray(lines, np.float64).reshape(-1, 2, 3)
+        o, seg = lines[:, 0], lines[:, 1] - lines[:, 0]  # [O,3]
+        length = np.linalg.norm(seg, axis=1)
+        d = seg / np.maximum(length, 1e-12)[:, None]  # [O,3] unit
+        b = np.einsum("oi,oi->o", o, d)  # the ball: |o + t d| = radius
+        disc = b ** 2 - (np.einsum("oi,oi->o", o, o) - radius ** 2)
+        root = np.sqrt(np.maximum(disc, 0.0))
+        t0, t1 = np.maximum(-b - root, 0.0), np.minimum(-b + root, length - stop)  # in the ball, short of the point
+        ok = (disc > 0) & (t1 > t0)
+        as_t = lambda a: torch.as_tensor(a[ok], dtype=torch.float32, device=device)  # noqa: E731
+        self.origin, self.direction, self.t0, self.span = as_t(o), as_t(d), as_t(t0), as_t(t1 - t0)
+        self.n_samples, self.margin = int(n_samples), float(margin)
+
+    def __call__(self, sdf_fn, generator: torch.Generator) -> torch.Tensor:
+        if len(self.origin) == 0:
+            return self.origin.new_zeros(())
+        dev = self.origin.device
+        pick = torch.randint(len(self.origin), (self.n_samples,), generator=generator).to(dev)
+        t = self.t0[pick] + torch.rand(self.n_samples, generator=generator).to(dev) * self.span[pick]  # [S]
+        x = self.origin[pick] + t[:, None] * self.direction[pick]  # [S,3]
+        return F.relu(self.margin - sdf_fn(x).reshape(-1)).mean()

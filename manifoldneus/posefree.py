@@ -86,13 +86,28 @@ def train_run(ctx, iters: int, pose_lr: float, pose_warmup_frac: float, learn_po
                     device=run.device)
 
 
+SFM_POINTS = ("object_points", "sight_lines")  # the anchors' SfM points, in initial_poses.zarr
+
+
+def free_space_term(lp, sfm_points: dict, radius: float, device):
+    """The loss section's free-space prior over the anchors' ``sfm_points`` (:data:`SFM_POINTS`), or None
+    when there are too few points to say where space is free."""
+    from manifoldneus.losses import FreeSpace, SightLines
+
+    if lp.free_space_kind == "sight_lines":
+        lines = sfm_points.get("sight_lines")
+        return None if lines is None or len(lines) < 20 else SightLines(lines, lp.sight_stop, radius, device=device)
+    points = sfm_points.get("object_points")
+    return None if points is None or len(points) < 20 else FreeSpace(points, lp.free_space_dist, radius, device=device)
+
+
 class Round:
     """One optimisation round over ``ids`` (global view ids) starting from poses ``w2c_all``."""
 
     def __init__(self, ctx, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
                  pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
                  pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None,
-                 object_points: np.ndarray | None = None):
+                 sfm_points: dict | None = None):
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
@@ -130,11 +145,8 @@ class Round:
             pose_views=None if pose_ids is None else np.flatnonzero(np.isin(self.ids, np.asarray(pose_ids, int))),
         )
         lp = ctx.section("loss")
-        if lp.w_free_space > 0 and inputs.views.masks is None and object_points is not None and len(object_points) >= 20:
-            from manifoldneus.losses import FreeSpace
-
-            self.trainer.free_space = FreeSpace(object_points, lp.free_space_dist, self.trainer.rp.radius,
-                                                device=self.trainer.device)
+        if lp.w_free_space > 0 and inputs.views.masks is None and sfm_points is not None:
+            self.trainer.free_space = free_space_term(lp, sfm_points, self.trainer.rp.radius, self.trainer.device)
         if carry is not None:  # the field learned so far; poses restart at zero correction
             t = self.trainer
             t.field.load_state_dict(carry["field"])

@@ -10,8 +10,9 @@ Intrinsics that are a guess or an EXIF prior (``anchors.intrinsics``) are first 
 shared camera's focal length and principal point refined by COLMAP on every trainable view's matches
 (:func:`self_calibrate`), then held fixed from the anchors' initialisation on.
 Writes ``round_0/`` (see :mod:`manifoldneus.posefree`) and ``initial_poses.zarr``: the anchors' initial
-poses, their K and the object's SfM points (``object_points`` [P,3], gauge frame; the mesh stage's crop
-without masks).
+poses, their K, the object's SfM points (``object_points`` [P,3], gauge frame; the mesh stage's crop
+without masks) and the lines of sight of every SfM observation (``sight_lines`` [O,2,3]; free space for
+the rounds' training without masks).
 """
 from __future__ import annotations
 
@@ -117,11 +118,12 @@ def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndar
 
 
 def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Params
-                  ) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray]:
+                  ) -> tuple[np.ndarray, np.ndarray, dict, dict]:
     """(w2c [N,4,4] of the anchors (identity elsewhere), K [N,3,3] the poses belong to, what was done,
-    the object's SfM points [P,3] in the gauge frame: those in the foreground or the common frustum;
-    none for the identity and reference initialisations)."""
-    no_points = np.zeros((0, 3))
+    the SfM points in the gauge frame: ``object_points`` [P,3] (those in the foreground or the common
+    frustum) and ``sight_lines`` [O,2,3] (:func:`sight_lines`); none for the identity and reference
+    initialisations)."""
+    no_points = {"object_points": np.zeros((0, 3)), "sight_lines": np.zeros((0, 2, 3))}
     n = len(inputs.names)
     w2c = np.tile(np.eye(4), (n, 1, 1))
     K = inputs.views.K
@@ -160,7 +162,20 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
     return w2c, K, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
                  "bridges": [int(v) for v in bridges], "unplaced": [inputs.names[v] for v in unplaced],
                  "why_unplaced": {inputs.names[v]: res.why_unplaced[v] for v in unplaced},
-                 **res.diagnostics, "calibration": calibration}, res.points[res.point_in_mask]
+                 **res.diagnostics, "calibration": calibration}, {"object_points": res.points[res.point_in_mask],
+                                                                  "sight_lines": sight_lines(res)}
+
+
+def sight_lines(res: pose_init.InitResult) -> np.ndarray:
+    """[O,2,3]: per observation of the reconstruction's points by a placed view, its camera centre and the
+    point (gauge frame): the segment between them is free space (:class:`manifoldneus.losses.SightLines`)."""
+    from manifoldneus.cameras import camera_centers
+
+    row = {v: k for k, v in enumerate(res.view_ids)}
+    rows = np.array([row[int(v)] for v in res.obs_view], int)
+    seen = res.placed[rows] if len(rows) else np.zeros(0, bool)
+    return np.stack([camera_centers(res.w2c)[rows[seen]], res.points[res.obs_point[seen]]], 1) if seen.any() \
+        else np.zeros((0, 2, 3))
 
 
 def log_refined(ctx, refine, K_before: np.ndarray, K_after: np.ndarray, views: str) -> None:
@@ -273,7 +288,7 @@ def run(ctx) -> None:
         raise RuntimeError(f"only {len(anchors)} trainable anchor view(s); check schedule.anchor_percent and "
                            f"split.holdout_every")
     n = len(inputs.names)
-    w2c0, K, init_info, object_points = initial_poses(ctx, inputs, anchors, p)
+    w2c0, K, init_info, sfm_points = initial_poses(ctx, inputs, anchors, p)
     inputs = posefree.with_intrinsics(inputs, K)  # every round from here on uses them
     if max(p.perturb_rot_deg, default=0.0) > 0 or p.perturb_centre_frac > 0:
         w2c0[anchors] = perturbed(w2c0[anchors], p, ctx.section("run").seed)
@@ -283,7 +298,8 @@ def run(ctx) -> None:
     placed = np.zeros(n, bool)
     placed[anchors] = True
     io.save_arrays(ctx.out / "initial_poses.zarr", {"w2c": w2c0, "placed": placed, "K": K,
-                                                    "object_points": object_points.astype(np.float32)}, chunk_first=False)
+                                                    **{k: v.astype(np.float32) for k, v in sfm_points.items()}},
+                   chunk_first=False)
     ctx.log.info("anchors %s initialised by %s", [inputs.names[a] for a in anchors], init_info["method"])
 
     s_tilde = inputs.schedule["s_tilde_rounds"][0]
@@ -291,7 +307,7 @@ def run(ctx) -> None:
     rnd = posefree.Round(ctx, inputs, anchors, w2c0, s_tilde, iters=p.iters, pose_lr=p.pose_lr,
                          pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
                          pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
-                         object_points=object_points)
+                         sfm_points=sfm_points)
     summary = rnd.run(ctx, "anchors", ctx.checkpoint_dir / "round_0.pt")
     posefree.save_round(ctx.out / "round_0", rnd, placed, {
         "round": 0, "views": anchors, "names": [inputs.names[a] for a in anchors], "init": init_info,

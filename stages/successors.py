@@ -81,7 +81,7 @@ def run(ctx) -> None:
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     ctx.metrics["rounds"] = []
     left_out: list[int] = []  # views an earlier round could not place: retried once more views are placed
-    object_points = io.load_arrays(ctx.input("anchors") / "initial_poses.zarr", ["object_points"])["object_points"]
+    sfm_points = io.load_arrays(ctx.input("anchors") / "initial_poses.zarr", list(posefree.SFM_POINTS))
     for r in range(1, n_rounds + 1):
         new = [*left_out, *(int(v) for v in np.flatnonzero((rounds == r) & inputs.train_mask))]
         left_out = []
@@ -127,7 +127,7 @@ def run(ctx) -> None:
         rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters,
                              pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
                              carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
-                             pose_ids=None if p.refine_placed else new, object_points=object_points)
+                             pose_ids=None if p.refine_placed else new, sfm_points=sfm_points)
         summary = rnd.run(ctx, f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt")
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,

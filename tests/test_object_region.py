@@ -156,6 +156,35 @@ def test_free_space_pushes_surface_away_from_the_points_only():
     assert float(h.grad) < 0
 
 
+def test_sight_lines_clear_what_stands_between_a_camera_and_its_points():
+    """The sight-line term: a blob between the cameras and the ball's points they observe is penalised (and
+    pushed out by its gradient); the ball itself, and a blob behind it, are not."""
+    import torch
+
+    from manifoldneus.losses import SightLines
+
+    rng = np.random.default_rng(0)
+    centres = 3.0 * np.array([[0, 0, -1], [0, -0.6, -0.8], [0.6, 0, -0.8], [-0.6, 0, -0.8]])  # [C,3]
+    dirs = rng.normal(size=(2000, 3))
+    points = 0.4 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)  # on the ball
+    lines = []
+    for c in centres:  # each camera observes the points facing it
+        facing = np.einsum("pi,pi->p", points / 0.4, (c - points) / np.linalg.norm(c - points, axis=1, keepdims=True))
+        lines += [np.stack([np.broadcast_to(c, (k.sum(), 3)), points[k]], 1) for k in [facing > 0.5]]
+    free = SightLines(np.concatenate(lines), stop=0.05, radius=1.0, n_samples=8192)
+    g = torch.Generator().manual_seed(0)
+
+    def blob_at(z, h=0.0):
+        return lambda x: torch.minimum(x.norm(dim=1) - 0.4, (x - x.new_tensor([0.0, 0.0, z])).norm(dim=1) - 0.15 + h)
+
+    assert float(free(lambda x: x.norm(dim=1) - 0.4, g)) == 0.0
+    assert float(free(blob_at(0.75), g)) == 0.0  # behind the ball: no camera looks through it
+    assert float(free(blob_at(-0.75), g)) > 1e-4  # in front: the cameras' lines to the ball cross it
+    h = torch.tensor(0.0, requires_grad=True)
+    free(blob_at(-0.75, h), g).backward()
+    assert float(h.grad) < 0  # raising its SDF (shrinking it) lowers the term
+
+
 def test_the_free_space_term_trains_an_unmasked_run(on_a_floor, tmp_path):
     pipeline.run("synthetic", until="anchors", artifacts=tmp_path, overrides=[
         *TINY, "ingest.synthetic_floor=true", "ingest.load_masks=false", "reference_surface.enabled=false",
@@ -164,3 +193,9 @@ def test_the_free_space_term_trains_an_unmasked_run(on_a_floor, tmp_path):
     round_0 = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / "round.json")
     assert round_0["train"]["loss_status"]["free_space"] == "on"
     assert "loss_free_space" in round_0["history"][-1]
+    # the lines of sight it carves: from the anchors' cameras (at their initial poses) to the points they observe
+    poses = io.load_arrays(store.version_dir("anchors", store.current("anchors")) / "initial_poses.zarr")
+    lines, anchors = poses["sight_lines"], np.flatnonzero(poses["placed"])
+    assert len(lines) > len(poses["object_points"]) >= 20
+    gap = np.linalg.norm(lines[:, None, 0] - cameras.camera_centers(poses["w2c"][anchors])[None], axis=2).min(1)
+    assert np.median(gap) < 1e-4  # most from the anchors themselves (a bridge view's are not anchors)
