@@ -74,7 +74,7 @@ def one(scene_name: str, setting: str, overrides: list[str], artifacts: Path) ->
         rounds = inputs.schedule["round"]
         anchors = [int(v) for v in np.flatnonzero((rounds == 0) & inputs.train_mask)]
         t0 = time.perf_counter()
-        inputs, refine, _ = anchors_stage.calibrated_inputs(ctx, inputs, ctx.params)
+        inputs, refine, _, _ = anchors_stage.calibrated_inputs(ctx, inputs, ctx.params)
         res = anchors_stage.matches_init(ctx, inputs, anchors, ctx.params, refine)
         seconds = time.perf_counter() - t0
     ids = res.view_ids

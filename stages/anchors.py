@@ -58,6 +58,11 @@ class Params:
                               "alone: the 13 anchors moved the principal point the wrong way (rotation 0.67 -> 0.81 "
                               "deg), the 42 training views found it within 3.5 px (0.11 deg)",
                               choices=["trainable", "anchors"])
+    sight_lines_from: str = param("calibration", "Without masks, the lines of sight the rounds keep free of surface "
+                                  "(loss.w_free_space): calibration (every training view's observations in the "
+                                  "self-calibration's reconstruction, brought onto the anchors' frame by their "
+                                  "camera centres; the anchors' own where no self-calibration ran) or anchors",
+                                  choices=["calibration", "anchors"])
     reproj_px: float = param(3.0, "matches init: COLMAP's reprojection threshold for keeping observations (px)",
                              lo=0.1)
     ba_loss: str = param("cauchy", "matches init: robust loss of a last bundle adjustment after COLMAP's mapper (its own "
@@ -144,7 +149,7 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
                 nb = [j for j in np.argsort(-inputs.W[a]) if registered[j]]
                 w2c[a] = ref[nb[0]] if nb else np.eye(4)
         return w2c, K, {"method": "reference", "unregistered": missing}, no_points
-    inputs, refine, calibration = calibrated_inputs(ctx, inputs, p)
+    inputs, refine, calibration, calibration_rec = calibrated_inputs(ctx, inputs, p)
     K = inputs.views.K
     res = matches_init(ctx, inputs, anchors, p, refine)
     ids = res.view_ids
@@ -163,7 +168,7 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
                  "bridges": [int(v) for v in bridges], "unplaced": [inputs.names[v] for v in unplaced],
                  "why_unplaced": {inputs.names[v]: res.why_unplaced[v] for v in unplaced},
                  **res.diagnostics, "calibration": calibration}, {"object_points": res.points[res.point_in_mask],
-                                                                  "sight_lines": sight_lines(res)}
+                                                                  "sight_lines": lines_of_sight(ctx, res, calibration_rec, p)}
 
 
 def sight_lines(res: pose_init.InitResult) -> np.ndarray:
@@ -178,6 +183,34 @@ def sight_lines(res: pose_init.InitResult) -> np.ndarray:
         else np.zeros((0, 2, 3))
 
 
+def lines_of_sight(ctx, res: pose_init.InitResult, calibration: pose_init.InitResult | None, p: Params) -> np.ndarray:
+    """The lines of sight (:func:`sight_lines`) in the anchors' gauge frame: the self-calibration's (every
+    training view) brought onto it by the similarity between the two reconstructions' common views' camera
+    centres, when ``anchors.sight_lines_from`` asks for them and they exist; else the anchors' own."""
+    own = sight_lines(res)
+    if p.sight_lines_from != "calibration" or calibration is None:
+        return own
+    from manifoldneus import cameras
+
+    row = {v: k for k, v in enumerate(calibration.view_ids)}
+    common = [(row[v], k) for k, v in enumerate(res.view_ids) if v in row and res.placed[k] and calibration.placed[row[v]]]
+    if len(common) < 3:
+        ctx.log.warning("the self-calibration shares %d placed views with the anchors' initialisation: too few to "
+                        "bring its lines of sight over; the anchors' own are used", len(common))
+        return own
+    src, dst = (np.array(c) for c in zip(*common))
+    s, R, t = cameras.align_centres(calibration.w2c[src], res.w2c[dst])
+    M = cameras.sim3_matrix(s, R, t)
+    lines = sight_lines(calibration)
+    lines = cameras.transform_points(M, lines.reshape(-1, 3)).reshape(-1, 2, 3)
+    gap = np.linalg.norm(cameras.transform_points(M, cameras.camera_centers(calibration.w2c[src]))
+                         - cameras.camera_centers(res.w2c[dst]), axis=1)
+    ctx.log.info("lines of sight: %d observations of %d training views (self-calibration), brought onto the anchors' "
+                 "frame by %d common views (centres within %.4f, max %.4f); the anchors' own: %d", len(lines),
+                 int(calibration.placed.sum()), len(common), gap.mean(), gap.max(), len(own))
+    return lines
+
+
 def log_refined(ctx, refine, K_before: np.ndarray, K_after: np.ndarray, views: str) -> None:
     ctx.log.info("intrinsics refined (%s) on the %s: focal %.1f -> %.1f px, principal point (%.1f, %.1f) -> "
                  "(%.1f, %.1f)", ", ".join(refine), views, K_before[0, 0], K_after[0, 0], *K_before[:2, 2],
@@ -185,20 +218,23 @@ def log_refined(ctx, refine, K_before: np.ndarray, K_after: np.ndarray, views: s
 
 
 def calibrated_inputs(ctx, inputs: posefree.SceneInputs, p: Params
-                      ) -> tuple[posefree.SceneInputs, tuple, dict | None]:
+                      ) -> tuple[posefree.SceneInputs, tuple, dict | None, pose_init.InitResult | None]:
     """The `matches` initialisation's intrinsics: (inputs with the self-calibrated K when `calibrate_on`
-    is trainable, what the anchors' own bundle adjustment may still refine, the calibration's record)."""
+    is trainable, what the anchors' own bundle adjustment may still refine, the calibration's record and
+    reconstruction)."""
     refine = tuple(p.refine_intrinsics) if sfm.intrinsics_mode(p.intrinsics, inputs.intrinsics_source) == "refine" else ()
     if not refine or p.calibrate_on != "trainable":
-        return inputs, refine, None
-    K, calibration = self_calibrate(ctx, inputs, refine, p)
-    return posefree.with_intrinsics(inputs, K), (), calibration
+        return inputs, refine, None, None
+    K, calibration, reconstruction = self_calibrate(ctx, inputs, refine, p)
+    return posefree.with_intrinsics(inputs, K), (), calibration, reconstruction
 
 
-def self_calibrate(ctx, inputs: posefree.SceneInputs, refine, p: Params) -> tuple[np.ndarray, dict]:
+def self_calibrate(ctx, inputs: posefree.SceneInputs, refine, p: Params
+                   ) -> tuple[np.ndarray, dict, pose_init.InitResult | None]:
     """The shared camera's intrinsics ``refine`` estimated by COLMAP's mapper and bundle adjustment on every
     trainable view's matches (a few anchors at a narrow field of view do not pin the principal point down);
-    (K [N,3,3], what was done). Their poses are not kept: the anchors are initialised afterwards, K fixed."""
+    (K [N,3,3], what was done, the reconstruction). Its poses are not kept: the anchors are initialised
+    afterwards, K fixed."""
     ids = [int(v) for v in np.flatnonzero(inputs.train_mask)]
     with io.native_output_to(ctx.log_path):
         res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
@@ -210,13 +246,13 @@ def self_calibrate(ctx, inputs: posefree.SceneInputs, refine, p: Params) -> tupl
     placed = np.flatnonzero(res.placed)
     if len(placed) == 0:
         ctx.log.warning("self-calibration registered no view; the intrinsics stay as the ingest gave them")
-        return inputs.views.K, {"views": len(ids), "registered": 0}
+        return inputs.views.K, {"views": len(ids), "registered": 0}, None
     K = sfm.shared_K(inputs.views.K, inputs.sizes, [ids[k] for k in placed], res.K[placed])
     first = ids[placed[0]]
     log_refined(ctx, refine, inputs.views.K[first], K[first], f"{len(placed)}/{len(ids)} trainable views")
     return K, {"views": len(ids), "registered": int(len(placed)), "refine": list(refine), "K": K[first].tolist(),
                "principal_point_test": res.diagnostics["principal_point_test"],
-               "mean_reproj_px": res.diagnostics["mean_reproj_px"], "seconds": res.diagnostics["seconds_total"]}
+               "mean_reproj_px": res.diagnostics["mean_reproj_px"], "seconds": res.diagnostics["seconds_total"]}, res
 
 
 def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Params, refine=()

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import pipeline
-from manifoldneus import io, scenes, synthetic
+from manifoldneus import cameras, io, scenes, synthetic
 from tests.test_end_to_end import TINY
 
 RES = 256  # the focal length is weakly determined at this narrow field of view: 192 px keypoints leave it 2.2 % off
@@ -51,6 +51,16 @@ def test_a_focal_length_30_percent_off_is_recovered(tmp_path, calibrated):
     calibration = round_0["init"]["calibration"]
     assert calibration["registered"] == calibration["views"] > len(round_0["views"]), calibration
     assert round_0["init"]["refine_intrinsics"] == []
+    # its reconstruction's lines of sight (every training view's, not only the anchors') are brought onto the
+    # anchors' frame: their origins sit at the training views' camera centres (the final poses, same frame)
+    lines = io.load_arrays(store.version_dir("anchors", store.current("anchors")) / "initial_poses.zarr",
+                           ["sight_lines"])["sight_lines"]
+    final = io.load_arrays(store.version_dir("successors", store.current("successors")) / "final" / "poses.zarr")
+    centres = cameras.camera_centers(final["w2c"][final["optimised"].astype(bool)])
+    gap = np.linalg.norm(lines[:, None, 0] - centres[None], axis=2)  # [O,C]
+    radius = np.linalg.norm(centres, axis=1).mean()
+    assert np.median(gap.min(1)) < 0.02 * radius
+    assert len(np.unique(gap.argmin(1))) > len(round_0["views"])
     # the rounds, the mesh and the exports use the refined K, not the ingest's
     final_K = io.load_arrays(store.version_dir("successors", store.current("successors")) / "final" / "poses.zarr",
                              ["K"])["K"]
