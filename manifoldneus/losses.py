@@ -33,15 +33,9 @@ class LossParams:
     w_depth: float = param(0.1, "Monocular depth weight (scale-and-shift invariant; only with depth priors)", lo=0.0)
     w_normal: float = param(0.05, "Monocular normal weight (L1 + 1 - cos, camera frame; only with normal priors)", lo=0.0)
     depth_min_rays: int = param(8, "Minimum valid rays of a view in the batch to fit its depth scale/shift", lo=3)
-    w_free_space: float = param(0.0, "Without masks: weight of the free-space term, which keeps the SDF positive (no "
-                                "surface) at points farther than free_space_dist from every object SfM point the "
-                                "anchors found (FreeSpace): a textureless support has no points and then no surface "
-                                "to stand in front of the object. 0 = off (not yet measured as a default)", lo=0.0)
-    free_space_dist: float = param(0.12, "Distance (gauge units) from the object's points beyond which the free-space "
-                                   "term applies (meshing.point_support crops the mesh at the same rule)", lo=0.0)
-    free_space_kind: str = param("sight_lines", "Free space where: 'sight_lines' (between each anchor camera and the "
-                                 "SfM points it observes) or 'far_from_points' (far from every object point)",
-                                 choices=["sight_lines", "far_from_points"])
+    w_free_space: float = param(0.0, "Without masks: weight of the free-space term (SightLines), which keeps the SDF "
+                                "positive (no surface) along the lines of sight between cameras and the SfM points "
+                                "they observe (anchors.sight_lines_from). 0 = off", lo=0.0)
     sight_stop: float = param(0.05, "sight_lines: the free segment stops this far (gauge units) before the point",
                               lo=0.0)
 
@@ -160,37 +154,6 @@ def compute_losses(out: dict, batch: dict, p: LossParams):
     weights = {"rgb": p.w_rgb, "eikonal": p.w_eikonal, "mask": p.w_mask, "depth": p.w_depth, "normal": p.w_normal}
     total = sum(weights[k] * v for k, v in terms.items())
     return total, {k: float(v.detach()) for k, v in terms.items()}, status
-
-
-class FreeSpace:
-    """A prior that there is no surface far from the object's SfM points [P,3] (the field's frame): at
-    ``n_samples`` uniform points in the ball of ``radius`` whose cell of a ``grid``^3 occupancy grid lies
-    farther than ``distance`` from every point and outside their convex hull (an object's inside is far
-    from its surface points too), mean(relu(margin - sdf)). Object surface with no point
-    within ``distance`` (a large textureless face) is pushed out too, as the mesh's point crop would."""
-
-    def __init__(self, points: np.ndarray, distance: float, radius: float, n_samples: int = 2048,
-                 margin: float = 0.01, grid: int = 64, device="cpu"):
-        from scipy.spatial import Delaunay
-
-        from manifoldneus.meshing import near_points
-
-        self.radius, self.n_samples, self.margin, self.grid = float(radius), int(n_samples), float(margin), int(grid)
-        axis = (np.arange(grid) + 0.5) / grid * 2 * radius - radius
-        centres = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)  # [G^3,3]
-        cell_half_diagonal = np.sqrt(3) * radius / grid
-        near = near_points(centres, points, distance + cell_half_diagonal)
-        inside = Delaunay(np.asarray(points, np.float64)).find_simplex(centres) >= 0  # the object's inside is far
-        self.far = torch.as_tensor(~near & ~inside, device=device)  # [G^3] bool: from its surface points too
-
-    def __call__(self, sdf_fn, generator: torch.Generator) -> torch.Tensor:
-        dev = self.far.device
-        x = (torch.rand(self.n_samples, 3, generator=generator) * 2 - 1).to(dev) * self.radius  # [S,3]
-        idx = ((x + self.radius) / (2 * self.radius) * self.grid).long().clamp_(0, self.grid - 1)
-        keep = (x.norm(dim=1) < self.radius) & self.far[(idx[:, 0] * self.grid + idx[:, 1]) * self.grid + idx[:, 2]]
-        if not bool(keep.any()):
-            return x.new_zeros(())
-        return F.relu(self.margin - sdf_fn(x[keep]).reshape(-1)).mean()
 
 
 class SightLines:

@@ -90,15 +90,12 @@ SFM_POINTS = ("object_points", "sight_lines")  # the anchors' SfM points, in ini
 
 
 def free_space_term(lp, sfm_points: dict, radius: float, device):
-    """The loss section's free-space prior over the anchors' ``sfm_points`` (:data:`SFM_POINTS`), or None
-    when there are too few points to say where space is free."""
-    from manifoldneus.losses import FreeSpace, SightLines
+    """The loss section's free-space prior along the anchors' lines of sight (``sfm_points``, see
+    :data:`SFM_POINTS`), or None when there are too few to say where space is free."""
+    from manifoldneus.losses import SightLines
 
-    if lp.free_space_kind == "sight_lines":
-        lines = sfm_points.get("sight_lines")
-        return None if lines is None or len(lines) < 20 else SightLines(lines, lp.sight_stop, radius, device=device)
-    points = sfm_points.get("object_points")
-    return None if points is None or len(points) < 20 else FreeSpace(points, lp.free_space_dist, radius, device=device)
+    lines = sfm_points.get("sight_lines")
+    return None if lines is None or len(lines) < 20 else SightLines(lines, lp.sight_stop, radius, device=device)
 
 
 class Round:

@@ -257,7 +257,7 @@ class Trainer:
         self.history: list[dict] = []
         self.extra_state: dict = {}  # a caller's own per-run records, checkpointed with the trainer
         self.recorder = None  # callable(trainer, info) at every logged step, before that step's checkpoint
-        self.free_space = None  # losses.FreeSpace: no surface far from the object's points (runs without masks)
+        self.free_space = None  # losses.SightLines: no surface along the SfM lines of sight (runs without masks)
         if self.masks is not None and self.tp.fg_ray_fraction > 0:
             tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
             fg = self.masks[tv].reshape(-1).nonzero()[:, 0]

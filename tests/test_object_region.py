@@ -136,26 +136,6 @@ def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_i
         assert meshing.near_points(np.asarray(mesh.vertices), points, 0.12 + 1e-6).all()
 
 
-def test_free_space_pushes_surface_away_from_the_points_only():
-    """The free-space term: a table with no SfM points is penalised; the ball the points lie on is not."""
-    import torch
-
-    from manifoldneus.losses import FreeSpace
-
-    rng = np.random.default_rng(0)
-    dirs = rng.normal(size=(1000, 3))
-    points = 0.4 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    free = FreeSpace(points, 0.12, radius=1.0, n_samples=8192)
-    g = torch.Generator().manual_seed(0)
-    ball = free(lambda x: x.norm(dim=1) - 0.4, g)
-    table = free(lambda x: torch.minimum(x.norm(dim=1) - 0.4, x[:, 2] + 0.6), g)
-    assert float(ball) == 0.0 and float(table) > 0.01  # below the table: inside its SDF, far from the ball
-    # its gradient moves the table's SDF up (out of the surface), where it is below the margin
-    h = torch.tensor(0.0, requires_grad=True)
-    free(lambda x: torch.minimum(x.norm(dim=1) - 0.4, x[:, 2] + 0.6 + h), g).backward()
-    assert float(h.grad) < 0
-
-
 def test_sight_lines_clear_what_stands_between_a_camera_and_its_points():
     """The sight-line term: a blob between the cameras and the ball's points they observe is penalised (and
     pushed out by its gradient); the ball itself, and a blob behind it, are not."""
