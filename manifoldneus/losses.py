@@ -33,9 +33,10 @@ class LossParams:
     w_depth: float = param(0.1, "Monocular depth weight (scale-and-shift invariant; only with depth priors)", lo=0.0)
     w_normal: float = param(0.05, "Monocular normal weight (L1 + 1 - cos, camera frame; only with normal priors)", lo=0.0)
     depth_min_rays: int = param(8, "Minimum valid rays of a view in the batch to fit its depth scale/shift", lo=3)
-    w_free_space: float = param(0.0, "Without masks: weight of the free-space term (SightLines), which keeps the SDF "
+    w_free_space: float = param(1.0, "Without masks: weight of the free-space term (SightLines), which keeps the SDF "
                                 "positive (no surface) along the lines of sight between cameras and the SfM points "
-                                "they observe (anchors.sight_lines_from). 0 = off", lo=0.0)
+                                "they observe (anchors.sight_lines_from); 0 = off. scan24_idr photos alone, seeds "
+                                "0/1: Chamfer 15.05 / 6.61 mm off, 5.81 / 4.99 at 1; 5.60 at 3 (seed 1)", lo=0.0)
     sight_stop: float = param(0.05, "sight_lines: the free segment stops this far (gauge units) before the point",
                               lo=0.0)
 

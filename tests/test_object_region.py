@@ -165,14 +165,15 @@ def test_sight_lines_clear_what_stands_between_a_camera_and_its_points():
     assert float(h.grad) < 0  # raising its SDF (shrinking it) lowers the term
 
 
-def test_the_free_space_term_trains_an_unmasked_run(on_a_floor, tmp_path):
-    pipeline.run("synthetic", until="anchors", artifacts=tmp_path, overrides=[
-        *TINY, "ingest.synthetic_floor=true", "ingest.load_masks=false", "reference_surface.enabled=false",
-        "loss.w_free_space=1.0"])
-    store = pipeline.Store(tmp_path, "synthetic")
+def test_the_free_space_term_is_on_without_masks_only(on_a_floor, tmp_path):
+    store = on_a_floor  # unmasked, the defaults
     round_0 = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / "round.json")
     assert round_0["train"]["loss_status"]["free_space"] == "on"
     assert "loss_free_space" in round_0["history"][-1]
+    pipeline.run("synthetic", until="anchors", artifacts=tmp_path, overrides=[*TINY, "reference_surface.enabled=false"])
+    masked = pipeline.Store(tmp_path, "synthetic")
+    masked_0 = io.load_json(masked.version_dir("anchors", masked.current("anchors")) / "round_0" / "round.json")
+    assert "free_space" not in masked_0["train"]["loss_status"]  # the masks say where the object is
     # the lines of sight it carves: from the anchors' cameras (at their initial poses) to the points they observe
     poses = io.load_arrays(store.version_dir("anchors", store.current("anchors")) / "initial_poses.zarr")
     lines, anchors = poses["sight_lines"], np.flatnonzero(poses["placed"])
