@@ -1,6 +1,6 @@
 """Surface extraction: SDF on a grid inside the sphere -> marching cubes -> largest component(s),
-optional culling (the sphere's closure, the training views' dilated masks, surface no view sees, what
-lies outside the object's region), PLY writing and a PNG preview.
+optional culling (the sphere's closure, the training views' dilated masks or, without masks, the
+silhouettes of the object's SfM points, surface no view sees, what lies outside the object's region), PLY writing and a PNG preview.
 
 Outside the sphere the SDF is unconstrained, so the grid values are intersected with the sphere:
 f' = max(f, |x| - radius) (the mesh is closed by the sphere where the SDF leaks out).
@@ -69,11 +69,25 @@ def keep_vertices(mesh, keep):
     return out
 
 
-def near_points(vertices: np.ndarray, points: np.ndarray, distance: float) -> np.ndarray:
-    """bool [V]: vertices [V,3] within ``distance`` of one of the points [P,3]."""
-    from scipy.spatial import cKDTree
+def point_silhouettes(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) -> np.ndarray:
+    """bool [N,H,W]: in each view (K [N,3,3], w2c [N,4,4], image size hw = (H, W)) the convex hull of the
+    points [P,3] in front of it, projected: the silhouette a mask would give, from SfM points alone. Convex, so
+    it also covers the object's concavities and its textureless parts between points."""
+    import cv2
 
-    return cKDTree(np.asarray(points, np.float64)).query(vertices, distance_upper_bound=distance)[0] <= distance
+    H, W = hw
+    out = np.zeros((len(w2c), H, W), bool)
+    for i in range(len(w2c)):
+        xc = points @ w2c[i][:3, :3].T + w2c[i][:3, 3]  # [P,3]
+        xc = xc[xc[:, 2] > 1e-9]
+        if len(xc) < 3:
+            continue
+        uv = (xc @ K[i].T)[:, :2] / xc[:, 2:]  # [P,2]
+        uv = np.clip(uv, -4 * max(H, W), 5 * max(H, W))  # far off-image points still bound the hull, as ints
+        m = np.zeros((H, W), np.uint8)
+        cv2.fillConvexPoly(m, cv2.convexHull(uv.astype(np.float32)).astype(np.int32), 1)
+        out[i] = m > 0
+    return out
 
 
 def off_sphere_closure(vertices: np.ndarray, radius: float, resolution: int) -> np.ndarray:
@@ -84,11 +98,12 @@ def off_sphere_closure(vertices: np.ndarray, radius: float, resolution: int) -> 
     return np.linalg.norm(vertices, axis=1) < radius - 0.75 * cell
 
 
-def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all"):
+def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all", min_fraction: float = 1.0):
     """Remove vertices outside the training views' dilated masks.
 
-    rule 'all' (DTU evaluation scripts of IDR / NeuS / MonoSDF): keep a vertex when, in every view,
-    it projects inside the dilated mask or outside the image (a visual hull).
+    rule 'all' (DTU evaluation scripts of IDR / NeuS / MonoSDF at ``min_fraction`` 1): keep a vertex when
+    it projects inside the dilated mask in at least ``min_fraction`` of the views whose image it falls in
+    (a visual hull; below 1 it tolerates views whose mask misses a part).
     rule 'any': keep a vertex that projects inside the dilated mask of at least one view.
     K [N,3,3], w2c [N,4,4], masks [N,H,W] bool. Faces keep only when all their vertices stay."""
     import cv2
@@ -96,8 +111,8 @@ def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all"):
     V = np.asarray(mesh.vertices, np.float64)
     N, H, W = masks.shape
     ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilation + 1, 2 * dilation + 1)) if dilation > 0 else None
-    inside_all = np.ones(len(V), bool)
-    inside_any = np.zeros(len(V), bool)
+    n_inside = np.zeros(len(V))
+    n_in_image = np.zeros(len(V))
     for i in range(N):
         m = masks[i].astype(np.uint8)
         if ker is not None:
@@ -110,9 +125,10 @@ def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all"):
         c = np.clip(uv[:, 0].astype(int), 0, W - 1)
         r = np.clip(uv[:, 1].astype(int), 0, H - 1)
         in_mask = in_img & (m[r, c] > 0)
-        inside_all &= in_mask | ~in_img
-        inside_any |= in_mask
-    return keep_vertices(mesh, inside_all if rule == "all" else inside_any)
+        n_inside += in_mask
+        n_in_image += in_img
+    keep = n_inside >= min_fraction * n_in_image - 1e-9 if rule == "all" else n_inside > 0
+    return keep_vertices(mesh, keep)
 
 
 def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0):

@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 import pipeline
-from manifoldneus import cameras, io, meshing, object_region, pose_metrics, synthetic
+from manifoldneus import artifacts, cameras, io, meshing, object_region, pose_metrics, synthetic
 from tests.conftest import TINY
 
 N_VIEWS = 20
@@ -77,8 +77,9 @@ def test_the_sphere_closure_is_removed_and_the_surface_kept():
     assert meshing.off_sphere_closure(np.asarray(small.vertices), 1.0, 48).all()
 
 
-def test_the_point_support_crop_drops_a_textureless_table_and_keeps_the_object():
-    """A ball on a table that gave no SfM points (scan24's white support): only the ball's surface is near a point."""
+def test_the_silhouettes_of_the_points_drop_a_textureless_table_and_keep_the_object():
+    """A ball on a table that gave no SfM points (scan24's white support): the convex hulls of the ball's points
+    in the views stand in for masks; the vote keeps the ball where one view's points miss it."""
     def sdf(p):
         return np.minimum(np.linalg.norm(p, axis=1) - 0.4, np.abs(p[:, 2] + 0.6) - 0.02)
 
@@ -86,11 +87,26 @@ def test_the_point_support_crop_drops_a_textureless_table_and_keeps_the_object()
     V = np.asarray(mesh.vertices)
     on_ball = np.abs(np.linalg.norm(V, axis=1) - 0.4) < 0.05
     assert on_ball.any() and (~on_ball).sum() > on_ball.sum()  # the table is most of the surface
-    rng = np.random.default_rng(0)
-    dirs = rng.normal(size=(1000, 3))
+    dirs = np.random.default_rng(0).normal(size=(1000, 3))
     points = 0.4 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)  # the ball's SfM points
-    keep = meshing.near_points(V, points, 0.12)
-    assert keep[on_ball].all() and not keep[~on_ball].any()
+    K, w2c, sizes = _views()
+    silhouettes = meshing.point_silhouettes(points, K, w2c, tuple(sizes[0]))  # [N,H,W]
+    assert silhouettes.shape == (N_VIEWS, *sizes[0]) and 0.02 < silhouettes.mean() < 0.5
+
+    def kept(masks, min_fraction):
+        out = np.asarray(meshing.cull_by_masks(mesh, K, w2c, masks, dilation=2, min_fraction=min_fraction).vertices)
+        left = np.abs(np.linalg.norm(out, axis=1) - 0.4) < 0.05
+        return left.sum(), out[~left]
+
+    ball_kept, table_kept = kept(silhouettes, 0.9)
+    assert ball_kept == on_ball.sum()
+    assert len(table_kept) < 0.1 * (~on_ball).sum()
+    # what is left of it lies between the cameras (all at y < 0) and the ball, which it hides in every view
+    assert (table_kept[:, 1] < -0.4).all() and (np.abs(table_kept[:, 0]) < 0.6).all()
+    # one view whose points miss the ball: a strict visual hull cuts what that view sees, the vote does not
+    silhouettes[0] = False
+    assert kept(silhouettes, 0.9)[0] == on_ball.sum()
+    assert kept(silhouettes, 1.0)[0] < 0.8 * on_ball.sum()
 
 
 @pytest.fixture(scope="module")
@@ -129,11 +145,17 @@ def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_i
     # the object's SfM points are kept for the mesh's crop, in the gauge frame: on the object, not the floor
     points = poses["object_points"]
     assert len(points) >= 20 and region.contains(points, -0.05 * region.radius).mean() > 0.9
-    # the mesh of the (tiny) model keeps to the region and near those points
+    # the mesh of the (tiny) model keeps to the region and to the points' silhouettes
     mesh = trimesh.load(store.version_dir("mesh", store.current("mesh")) / "mesh.ply", process=False)
     if len(mesh.faces):
-        assert region.contains(np.asarray(mesh.vertices), 0.0).all()
-        assert meshing.near_points(np.asarray(mesh.vertices), points, 0.12 + 1e-6).all()
+        V = np.asarray(mesh.vertices)
+        assert region.contains(V, 0.0).all()
+        assert (s * V @ R.T + t)[:, 2].min() > synthetic.FLOOR_Z  # in the world: the floor is gone
+        final = artifacts.load_round(store.version_dir("successors", store.current("successors")) / "final")
+        used = np.flatnonzero(final["optimised"].astype(bool))
+        silhouettes = meshing.point_silhouettes(points, final["K"][used], final["w2c"][used], (128, 128))
+        assert len(meshing.cull_by_masks(mesh, final["K"][used], final["w2c"][used], silhouettes, dilation=12,
+                                         min_fraction=0.9).vertices) == len(V)  # and within the points' silhouettes
 
 
 def test_sight_lines_clear_what_stands_between_a_camera_and_its_points():
