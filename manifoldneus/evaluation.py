@@ -41,7 +41,8 @@ class MeshParams:
                                    "falls outside; below 1 so that one view whose points miss a part of the object "
                                    "does not cut it. Measured on scan24_idr's photos alone (seeds 0-2): Chamfer "
                                    "5.90 / 5.13 / 5.45 mm with the crop to within 0.12 of a point it replaces -> "
-                                   "5.25 / 4.67 / 5.01 (remeshed offline at 0.95: 5.45 / 4.71 / 4.77); 0 = off", lo=0.0, hi=1.0)
+                                   "5.25 / 4.67 / 5.01 (remeshed offline at 0.95: 5.45 / 4.71 / 4.77); 0 = off",
+                                   lo=0.0, hi=1.0)
     visibility_size: int = param(128, "Image size (longest side, px) of the z-buffers that decide visibility", lo=16)
     preview_size: int = param(320, "Side of each of the 3 preview renderings (px)", lo=64)
 

@@ -1,6 +1,7 @@
 """Surface extraction: SDF on a grid inside the sphere -> marching cubes -> largest component(s),
 optional culling (the sphere's closure, the training views' dilated masks or, without masks, the
-silhouettes of the object's SfM points, surface no view sees, what lies outside the object's region), PLY writing and a PNG preview.
+silhouettes of the object's SfM points, surface no view sees, what lies outside the object's region),
+PLY writing and a PNG preview.
 
 Outside the sphere the SDF is unconstrained, so the grid values are intersected with the sphere:
 f' = max(f, |x| - radius) (the mesh is closed by the sphere where the SDF leaks out).
@@ -10,6 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+
+from manifoldneus.cameras import project_points, transform_points
 
 
 def sdf_grid(sdf_fn, resolution: int = 256, radius: float = 1.0, chunk: int = 262144,
@@ -78,11 +81,11 @@ def point_silhouettes(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) ->
     H, W = hw
     out = np.zeros((len(w2c), H, W), bool)
     for i in range(len(w2c)):
-        xc = points @ w2c[i][:3, :3].T + w2c[i][:3, 3]  # [P,3]
+        xc = transform_points(w2c[i], points)  # [P,3]
         xc = xc[xc[:, 2] > 1e-9]
         if len(xc) < 3:
             continue
-        uv = (xc @ K[i].T)[:, :2] / xc[:, 2:]  # [P,2]
+        uv = project_points(K[i], xc)  # [P,2]
         uv = np.clip(uv, -4 * max(H, W), 5 * max(H, W))  # far off-image points still bound the hull, as ints
         m = np.zeros((H, W), np.uint8)
         cv2.fillConvexPoly(m, cv2.convexHull(uv.astype(np.float32)).astype(np.int32), 1)

@@ -3,9 +3,10 @@
 SDF on a grid inside the unit sphere -> marching cubes -> largest component(s) -> the sphere's closure
 removed -> culled by the training views' dilated masks (when masks exist), or, without masks, cropped to
 the object's region the anchors found (ball and support plane) and to the silhouettes of the object's SfM
-points in the views (``meshing.silhouette_vote``) -> cropped to the surface some training view sees. Output frame: the normalised object frame the
-method built (anchors' points median-centred, robust radius `anchors.gauge_radius`); the mesh
-(``mesh.ply``) and the poses (``colmap/`` text model, ``poses.zarr``) are both in it.
+points in the views (``meshing.silhouette_vote``) -> cropped to the surface some training view sees.
+Output frame: the normalised object frame the method built (anchors' points median-centred, robust radius
+`anchors.gauge_radius`); the mesh (``mesh.ply``) and the poses (``colmap/`` text model, ``poses.zarr``) are
+both in it.
 """
 from __future__ import annotations
 
