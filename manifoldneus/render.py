@@ -47,9 +47,13 @@ class RenderParams:
     cache_max_s: float = param(48.0, "cache: cap on s when weighting cached SDF values (about the cache's resolution)", lo=1.0)
     cache_every: int = param(50, "cache: refresh the SDF cache every this many iterations", lo=1)
     radius: float = param(1.0, "Radius of the bounding sphere (the object lies inside it)", lo=0.1)
-    background: str = param("auto", "Background: 'black', 'white', 'constant' (learned), 'envmap' (learned, per direction) "
-                            "or 'auto' (black with masks, envmap without)",
-                            choices=["auto", "black", "white", "constant", "envmap"])
+    background: str = param("auto", "Background: 'black', 'white', 'constant' (learned), 'envmap' (learned, per direction), "
+                            "'nerf++' (learned, NeRF++'s inverted-sphere field outside the bounding sphere: "
+                            "a background at a finite distance, with parallax) or 'auto' (black with masks, "
+                            "envmap without)",
+                            choices=["auto", "black", "white", "constant", "envmap", "nerf++"])
+    background_samples: int = param(16, "nerf++: samples per ray outside the sphere, stratified in inverse distance",
+                                    lo=2)
     eikonal_samples: int = param(1024, "Eikonal points per batch taken from the ray samples", lo=0)
     eikonal_uniform: int = param(256, "Eikonal points per batch drawn uniformly in the sphere", lo=0)
     chunk: int = param(4096, "Rays per chunk when rendering whole images", lo=64)
@@ -59,19 +63,27 @@ class RenderParams:
 
 
 class Background(nn.Module):
-    """Colour seen where the rays leave the sphere: fixed, learned constant, or a tiny
-    direction-only MLP (an environment map at infinity, NeRF++-lite)."""
+    """Colour seen where the rays leave the sphere of ``radius``: fixed, a learned constant, a tiny
+    direction-only MLP (``envmap``: an environment map at infinity), or ``nerf++``: a small density and
+    colour field on NeRF++'s inverted-sphere coordinates (x/|x|, radius/|x|) in (0, 1], sampled at
+    ``samples`` points per ray beyond the sphere, so that a near background (a room, a table beyond the
+    sphere) shows its parallax instead of growing surface inside the sphere."""
 
-    def __init__(self, kind: str):
+    def __init__(self, kind: str, radius: float = 1.0, samples: int = 16):
         super().__init__()
-        self.kind = kind
+        self.kind, self.radius, self.samples = kind, float(radius), int(samples)
+        self.bands = 4
         if kind == "constant":
             self.value = nn.Parameter(torch.zeros(3))
         elif kind == "envmap":
-            self.bands = 4
             self.net = nn.Sequential(nn.Linear(3 + 6 * self.bands, 32), nn.ReLU(), nn.Linear(32, 3))
+        elif kind == "nerf++":
+            self.trunk = nn.Sequential(nn.Linear(4 + 8 * self.bands, 64), nn.ReLU(), nn.Linear(64, 64), nn.ReLU())
+            self.density = nn.Linear(64, 1)
+            self.colour = nn.Sequential(nn.Linear(64 + 3 + 6 * self.bands, 32), nn.ReLU(), nn.Linear(32, 3))
 
-    def forward(self, dirs: torch.Tensor) -> torch.Tensor:
+    def forward(self, origins: torch.Tensor, dirs: torch.Tensor, perturb: bool = False) -> torch.Tensor:
+        """Colour [R,3] of rays (origins [R,3], unit dirs [R,3]) beyond the sphere."""
         n = dirs.shape[0]
         if self.kind == "black":
             return dirs.new_zeros(n, 3)
@@ -79,7 +91,25 @@ class Background(nn.Module):
             return dirs.new_ones(n, 3)
         if self.kind == "constant":
             return torch.sigmoid(self.value).expand(n, 3)
-        return torch.sigmoid(self.net(fourier_encode(dirs, self.bands)))
+        if self.kind == "envmap":
+            return torch.sigmoid(self.net(fourier_encode(dirs, self.bands)))
+        return self._outside(origins, dirs, perturb)
+
+    def _outside(self, o: torch.Tensor, d: torch.Tensor, perturb: bool) -> torch.Tensor:
+        R, S = d.shape[0], self.samples
+        inv = 1.0 - stratified(o.new_zeros(R), o.new_ones(R), S, perturb)  # [R,S] radius/|x|, from 1 (the sphere) out
+        r = self.radius / inv.clamp_min(1e-3)  # [R,S] increasing along the ray
+        b = (o * d).sum(-1, keepdim=True)  # [R,1]
+        t = -b + (b * b - (o * o).sum(-1, keepdim=True) + r * r).clamp_min(0).sqrt()  # [R,S] exit of |x| = r
+        x = o[:, None] + t[..., None] * d[:, None]  # [R,S,3]
+        unit = F.normalize(x, dim=-1)
+        h = self.trunk(fourier_encode(torch.cat([unit, inv[..., None]], -1).reshape(-1, 4), self.bands))  # [R*S,64]
+        sigma = F.softplus(self.density(h).reshape(R, S))
+        delta = torch.cat([t[:, 1:] - t[:, :-1], torch.full_like(t[:, :1], 1e10)], -1)  # the last sample is opaque
+        w = alpha_to_weights(1.0 - torch.exp(-sigma * delta))  # [R,S]
+        rgb = torch.sigmoid(self.colour(torch.cat(
+            [h, fourier_encode(d[:, None].expand(R, S, 3).reshape(-1, 3), self.bands)], -1))).reshape(R, S, 3)
+        return (w[..., None] * rgb).sum(1)
 
 
 def resolve_background(kind: str, has_masks: bool) -> str:
@@ -253,7 +283,7 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
         normals_s = F.normalize(grad, dim=-1)
         rgb = field._color(x_in, dirs, feat, normals_s)
         sdf, rgb = sdf.reshape(R, S), rgb.reshape(R, S, 3)
-        w, out = _composite(field, sdf, rgb, t, hit, d, background, out)
+        w, out = _composite(field, sdf, rgb, t, hit, o, d, background, out, perturb)
         if want_normals:
             ns = normals_s.reshape(R, S, 3)
             out["normal"] = F.normalize((w[..., None] * 0.5 * (ns[:, :-1] + ns[:, 1:])).sum(1), dim=-1)
@@ -311,7 +341,7 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
             g, _ = fin(sdf_all[off:off + size])
             out[name] = g if name == "eik_grad" else F.normalize(g, dim=-1)
             off += size
-    w, out = _composite(field, sdf, rgb, t, hit, d, background, out)
+    w, out = _composite(field, sdf, rgb, t, hit, o, d, background, out, perturb)
     if want_normals and "normal" not in out:
         # no sampling-based surface estimate: gradient at the rendered depth (second call)
         t_s = (out["depth"] / out["opacity"].clamp_min(1e-4)).detach()
@@ -326,7 +356,7 @@ def _uniform_ball(n, radius, device):
     return u * torch.rand(n, 1, device=device) ** (1 / 3) * radius
 
 
-def _composite(field, sdf, rgb, t, hit, d, background, out):
+def _composite(field, sdf, rgb, t, hit, o, d, background, out, perturb):
     alpha = neus_alpha(sdf, field.inv_s())  # [R,S-1]
     w = alpha_to_weights(alpha) * hit[:, None].to(alpha.dtype)
     c_sec = 0.5 * (rgb[:, :-1] + rgb[:, 1:])
@@ -334,7 +364,7 @@ def _composite(field, sdf, rgb, t, hit, d, background, out):
     opacity = w.sum(-1)
     color = (w[..., None] * c_sec).sum(1)
     if background is not None:
-        color = color + (1.0 - opacity)[:, None] * background(d)
+        color = color + (1.0 - opacity)[:, None] * background(o, d, perturb)
     out.update(rgb=color, depth=(w * t_mid).sum(-1), opacity=opacity, weights=w)
     return w, out
 

@@ -237,7 +237,7 @@ class Trainer:
             lo, hi = visual_hull_aabb(self.views, radius=self.rp.radius)
             self.field.set_aabb(lo, hi)
         self.bg_kind = resolve_background(self.rp.background, self.masks is not None)
-        self.background = Background(self.bg_kind).to(dev)
+        self.background = Background(self.bg_kind, self.rp.radius, self.rp.background_samples).to(dev)
         self.cache = SDFCache(self.rp.cache_res, self.rp.radius, device=dev) if self.rp.sampler == "cache" else None
         self.cams = PoseCorrections(
             self.w2c_init, (self.train_views if pose_views is None else pose_views) if run.learn_poses else None,
