@@ -50,8 +50,10 @@ class RenderParams:
     background: str = param("auto", "Background: 'black', 'white', 'constant' (learned), 'envmap' (learned, per direction), "
                             "'nerf++' (learned, NeRF++'s inverted-sphere field outside the bounding sphere: "
                             "a background at a finite distance, with parallax) or 'auto' (black with masks, "
-                            "envmap without)",
+                            "background_unmasked without)",
                             choices=["auto", "black", "white", "constant", "envmap", "nerf++"])
+    background_unmasked: str = param("envmap", "The background 'auto' means for views without masks",
+                                     choices=["black", "white", "constant", "envmap", "nerf++"])
     background_samples: int = param(16, "nerf++: samples per ray outside the sphere, stratified in inverse distance",
                                     lo=2)
     eikonal_samples: int = param(1024, "Eikonal points per batch taken from the ray samples", lo=0)
@@ -112,10 +114,10 @@ class Background(nn.Module):
         return (w[..., None] * rgb).sum(1)
 
 
-def resolve_background(kind: str, has_masks: bool) -> str:
+def resolve_background(kind: str, has_masks: bool, unmasked: str = "envmap") -> str:
     if kind != "auto":
         return kind
-    return "black" if has_masks else "envmap"
+    return "black" if has_masks else unmasked
 
 
 # ----------------------------------------------------------------------------- SDF cache

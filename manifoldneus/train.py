@@ -236,7 +236,7 @@ class Trainer:
         if self.fp.kind == "grid" and self.tp.auto_aabb:
             lo, hi = visual_hull_aabb(self.views, radius=self.rp.radius)
             self.field.set_aabb(lo, hi)
-        self.bg_kind = resolve_background(self.rp.background, self.masks is not None)
+        self.bg_kind = resolve_background(self.rp.background, self.masks is not None, self.rp.background_unmasked)
         self.background = Background(self.bg_kind, self.rp.radius, self.rp.background_samples).to(dev)
         self.cache = SDFCache(self.rp.cache_res, self.rp.radius, device=dev) if self.rp.sampler == "cache" else None
         self.cams = PoseCorrections(

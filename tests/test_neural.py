@@ -250,7 +250,7 @@ def test_an_unmasked_trainer_with_the_nerfpp_background_trains_and_reloads_it(tm
     v = synthetic_views()
     views = Views(v.images, v.K, v.w2c, None)
     fp, rp, tp, run = tiny_params(60)
-    rp = dataclasses.replace(rp, background="nerf++", background_samples=8)
+    rp = dataclasses.replace(rp, background_unmasked="nerf++", background_samples=8)  # background auto
     tr = Trainer(views, fp, rp, LossParams(), tp, run=run)
     losses = []
     tr.train(callback=lambda t, info: losses.append(info["loss_rgb"]))
