@@ -115,7 +115,7 @@ class Background(nn.Module):
         return (w[..., None] * rgb).sum(1)
 
 
-def resolve_background(kind: str, has_masks: bool, unmasked: str = "envmap") -> str:
+def resolve_background(kind: str, has_masks: bool, unmasked: str) -> str:
     if kind != "auto":
         return kind
     return "black" if has_masks else unmasked
