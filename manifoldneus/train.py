@@ -18,7 +18,11 @@ Hooks for the pose-free method:
 
 Reproducibility: one seed drives every random draw (ray batches from ``self.rng``, sample jitter
 from torch's global generator); both generators' states, the loss average and the history are in
-the checkpoint, so a resumed run continues exactly as an uninterrupted one would.
+the checkpoint, so a resumed run continues exactly as an uninterrupted one would. The trainer turns
+on torch's deterministic algorithms: on the CPU, the backward of an index with repeated entries (the
+pose terms' ``w2c[view]``) otherwise adds with atomics across threads once a batch passes torch's grain
+size, and two runs of one seed drift apart (scan24_idr's masked anchors, 2 threads: final loss 0.19973 vs
+0.19930 after 600 iterations, the same code and inputs).
 """
 from __future__ import annotations
 
@@ -213,6 +217,9 @@ class Trainer:
         self.device = torch.device(run.device)
         if run.threads > 0:
             torch.set_num_threads(run.threads)
+        if self.device.type == "cuda":
+            os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # cuBLAS's condition for determinism
+        torch.use_deterministic_algorithms(True, warn_only=True)  # one seed, one result (module doc)
         torch.manual_seed(run.seed)
         self.rng = torch.Generator(device="cpu").manual_seed(run.seed)
         self.views = views.resized(self.tp.image_size)
