@@ -8,7 +8,7 @@
     python pipeline.py params-diff --scene S STAGE
     python pipeline.py verify --scene S
     python pipeline.py view --scene S [--preset NAME] [--out FILE] [--open] [--screenshot PNG]
-    python pipeline.py gc [--scene S]
+    python pipeline.py gc [--scene S] [--dry-run]
 
 Artifact layout: ``artifacts/<scene>/<stage>/<fingerprint>/`` (files + ``manifest.json`` +
 ``log.txt``) and ``artifacts/<scene>/<stage>/current`` (symlink to the version in use).
@@ -36,6 +36,7 @@ import importlib
 import json
 import logging
 import os
+import re
 import shutil
 import socket
 import sys
@@ -913,19 +914,82 @@ def view(scene_name: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=No
     return path, viewer.write_page(versions, path, title, max_faces or viewer.MAX_FACES)
 
 
-def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None) -> list[Path]:
-    """Delete versions that no `current` pointer names, and leftovers of interrupted runs."""
-    removed = []
-    scenes = [Path(artifacts) / scene_name] if scene_name else sorted(p for p in Path(artifacts).glob("*") if p.is_dir())
-    for scene_dir in scenes:
+# What gc may delete: names this runner writes inside a stage folder, nothing else.
+_VERSION_NAME = re.compile(r"[0-9a-f]{12}")
+_LEFTOVER_NAME = re.compile(r"\.(?P<kind>tmp|failed|ckpt)-(?P<fp>[0-9a-f]{12})(?:-(?P<host>.+)-(?P<pid>\d+))?")
+
+
+def _our_version(stage_dir: Path, folder: Path) -> bool:
+    """A version this runner wrote: a real folder named by a fingerprint whose manifest names this
+    stage and fingerprint. A folder without such a manifest is not ours to delete."""
+    if folder.is_symlink() or not folder.is_dir() or not _VERSION_NAME.fullmatch(folder.name):
+        return False
+    try:
+        manifest = json.loads((folder / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(manifest, dict) and manifest.get("stage") == stage_dir.name \
+        and manifest.get("fingerprint") == folder.name
+
+
+def _process_alive(host: str | None, pid: str | None) -> bool:
+    """Whether the process that names a `.tmp-*` folder may still run. Under gc's exclusive scene
+    lock no run holds the scene, so only a live pid of this host (a lock-less filesystem) counts."""
+    if host != socket.gethostname() or pid is None:
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _stage_folders(scene_dir: Path, stage_names) -> list[Path]:
+    """The scene folder's stage folders that hold at least one version of ours (real folders only)."""
+    return sorted(d for d in scene_dir.iterdir()
+                  if d.name in stage_names and d.is_dir() and not d.is_symlink()
+                  and any(_our_version(d, v) for v in d.iterdir()))
+
+
+def gc_scene_dirs(artifacts: Path, scene_name: str | None = None, data_root=None) -> list[Path]:
+    """The scene folders gc acts on: the one `run` would use for ``scene_name`` (resolved as `run`
+    resolves it), or every folder of the artifacts root that holds versions of ours. Only direct
+    children of the artifacts root; nothing is created."""
+    root = Path(artifacts)
+    if not root.is_dir():
+        raise PipelineError(f"artifacts folder {root} does not exist: nothing to collect")
+    stage_names = set(load_stages())
+    if scene_name is None:
+        return [d for d in sorted(root.iterdir())
+                if d.is_dir() and not d.is_symlink() and _stage_folders(d, stage_names)]
+    scene = resolve_scene(scene_name, data_root)
+    scene_dir = root / scene.name
+    if scene_dir.is_symlink() or scene_dir.resolve().parent != root.resolve():
+        raise PipelineError(f"scene {scene_name!r} maps to {scene_dir}, which is not a folder of {root}: gc leaves it alone")
+    if not scene_dir.is_dir() or not _stage_folders(scene_dir, stage_names):
+        raise PipelineError(f"no artifacts of scene {scene.name!r} in {root} (the scene {scene_name!r} resolves to "
+                            f"it as `run` does): nothing to collect")
+    return [scene_dir]
+
+
+def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None, data_root=None,
+       dry_run: bool = False) -> dict[Path, int]:
+    """Delete, inside the artifacts root only, the versions this runner wrote that no `current`
+    pointer needs (a pointed version keeps the upstream versions it was computed from), and the
+    leftovers of runs that ended: `.tmp-*` of dead processes, `.failed-*`, and checkpoints of
+    versions since published. Returns what it removed (with ``dry_run``, what it would remove): path -> bytes."""
+    removed: dict[Path, int] = {}
+    stage_names = set(load_stages())
+    for scene_dir in gc_scene_dirs(artifacts, scene_name, data_root):
         store = Store(Path(artifacts), scene_dir.name)
         with store.lock():
-            # only stage folders: others (e.g. the report) are not versioned
-            stage_names = set(load_stages())
-            stage_dirs = sorted(p for p in scene_dir.iterdir() if p.is_dir() and p.name in stage_names)
+            stage_dirs = _stage_folders(scene_dir, stage_names)
             # what the pointers name, and the upstream versions those were computed from: a version
             # reused through the content digest may name an upstream version no pointer names
-            todo = [(d.name, os.readlink(p)) for d in stage_dirs for p in d.iterdir() if p.is_symlink()]
+            todo = [(d.name, os.readlink(p)) for d in stage_dirs for p in d.iterdir()
+                    if p.is_symlink() and (p.name == "current" or p.name.startswith("current@"))]
             keep: set[tuple[str, str]] = set()
             while todo:
                 stage, fp = todo.pop()
@@ -934,13 +998,31 @@ def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None) -> li
                 keep.add((stage, fp))
                 todo.extend(store.manifest(stage, fp).get("upstream", {}).items())
             for stage_dir in stage_dirs:
-                for version in stage_dir.iterdir():
-                    if version.is_symlink() or (stage_dir.name, version.name) in keep or version.name.startswith(".ckpt-"):
+                for entry in sorted(stage_dir.iterdir()):
+                    if entry.is_symlink() or not entry.is_dir():
                         continue
-                    shutil.rmtree(version, ignore_errors=True)
-                    removed.append(version)
-            shutil.rmtree(scene_dir / ".locks", ignore_errors=True)  # no run holds one: gc has the scene
+                    leftover = _LEFTOVER_NAME.fullmatch(entry.name)
+                    if _our_version(stage_dir, entry):
+                        doomed = (stage_dir.name, entry.name) not in keep
+                    elif leftover and leftover["kind"] == "tmp":
+                        doomed = not _process_alive(leftover["host"], leftover["pid"])
+                    elif leftover and leftover["kind"] == "failed":
+                        doomed = True
+                    elif leftover and leftover["kind"] == "ckpt":  # its version was published since
+                        doomed = store.is_complete(stage_dir.name, leftover["fp"])
+                    else:
+                        doomed = False  # not a name this runner writes
+                    if doomed:
+                        removed[entry] = _folder_size(entry)
+                        if not dry_run:
+                            shutil.rmtree(entry, ignore_errors=True)
+            if not dry_run:
+                shutil.rmtree(scene_dir / ".locks", ignore_errors=True)  # no run holds one: gc has the scene
     return removed
+
+
+def _folder_size(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file() and not p.is_symlink())
 
 
 # ---------------------------------------------------------------------------- CLI
@@ -990,9 +1072,11 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--open", action="store_true", help="also open the page in the default browser")
     sp.add_argument("--screenshot", type=Path, default=None, metavar="PNG",
                     help="also render the page in headless Chromium and save what it shows (1200x800)")
-    sp = sub.add_parser("gc", help="delete artifact versions no longer current")
-    sp.add_argument("--scene", default=None)
-    sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS)
+    sp = sub.add_parser("gc", help="delete artifact versions no longer current (inside the artifacts folder only)")
+    sp.add_argument("--scene", default=None, help="only this scene, resolved as `run` resolves it (default: every scene)")
+    sp.add_argument("--data-root", type=Path, default=None, help="data root (default $MANIFOLDNEUS_DATA or ../shared/data)")
+    sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS, help="the artifacts folder (default ./artifacts)")
+    sp.add_argument("--dry-run", action="store_true", help="list what would be removed, remove nothing")
     return p
 
 
@@ -1092,8 +1176,11 @@ def _command(args) -> int:
 
             webbrowser.open(path.resolve().as_uri())
     elif args.command == "gc":
-        removed = gc(args.artifacts, args.scene)
-        print(f"removed {len(removed)} old version(s)")
+        removed = gc(args.artifacts, args.scene, args.data_root, args.dry_run)
+        verb = "would remove" if args.dry_run else "removed"
+        for path, size in removed.items():
+            print(f"{verb} {path}  ({size / 2**20:.1f} MiB)")
+        print(f"{verb} {len(removed)} old version(s), {sum(removed.values()) / 2**20:.1f} MiB")
     return 0
 
 

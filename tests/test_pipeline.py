@@ -72,13 +72,14 @@ def test_failure_mid_write_publishes_nothing_and_rerun_succeeds(artifacts, monke
 
 
 def test_gc_refuses_while_a_run_is_in_progress(artifacts):
+    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
     store = pipeline.Store(artifacts, "synthetic")
     with store.in_use():  # as a run in another process holds it
         with pytest.raises(pipeline.PipelineError, match="a run on .* is in progress"):
             pipeline.gc(artifacts, "synthetic")
         # runs of one scene go side by side: each version has its own lock
-        assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {
-            "ingest": "computed"}
+        assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH + ["ingest.downscale=2"],
+                            artifacts=artifacts) == {"ingest": "computed"}
 
 
 def test_truncated_manifest_is_a_missing_version(artifacts):
@@ -197,6 +198,70 @@ def test_cli_status_show_params_diff_gc(capsys, artifacts):
     assert pipeline.main(["gc", "--artifacts", str(artifacts)]) == 0
     assert "removed 2 old version" in capsys.readouterr().out
     assert report.is_dir()
+
+
+def test_gc_acts_only_on_versions_it_wrote_inside_the_artifacts_root(capsys, tmp_path, monkeypatch):
+    artifacts = tmp_path / "work" / "artifacts"
+    sets = sum((["--set", s] for s in FAST_SYNTH), [])
+    assert pipeline.main(["run", "--scene", "synthetic", "--artifacts", str(artifacts), *sets, "--until", "ingest"]) == 0
+    # a user's photo folder with subfolders named like stages, and stage-named folders beside the artifacts
+    photos = tmp_path / "photos"
+    user_files = []
+    for where in (photos / "mesh" / "keep", photos / "export" / "keep", tmp_path / "work" / "mesh" / "keep",
+                  artifacts / "synthetic" / "ingest" / "notes"):  # the last: not a version of ours
+        where.mkdir(parents=True)
+        (where / "mine.txt").write_text("a user's file")
+        user_files.append(where / "mine.txt")
+    (artifacts / "synthetic" / "ingest" / "0123456789ab").mkdir()  # a fingerprint-like name, no manifest of ours
+    monkeypatch.chdir(artifacts)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    for scene in (str(photos), "..", str(tmp_path / "work")):
+        assert pipeline.main(["gc", "--scene", scene, "--artifacts", str(artifacts)]) == 2
+        assert "no artifacts of scene" in capsys.readouterr().err
+    assert pipeline.main(["gc", "--scene", "no-such-scene", "--artifacts", str(artifacts)]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert pipeline.main(["gc", "--scene", "synthetic", "--artifacts", str(tmp_path / "nowhere")]) == 2
+    assert not (tmp_path / "nowhere").exists()
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before  # nothing removed, nothing created
+
+    # an old version of ours: listed by --dry-run, removed by gc; the user's files stay
+    assert pipeline.main(["run", "--scene", "synthetic", "--artifacts", str(artifacts), *sets,
+                          "--set", "ingest.downscale=2", "--until", "ingest"]) == 0
+    capsys.readouterr()
+    assert pipeline.main(["gc", "--artifacts", str(artifacts), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "would remove 1 old version(s)" in out and "MiB" in out
+    old = [p for p in (artifacts / "synthetic" / "ingest").iterdir() if pipeline._our_version(p.parent, p)
+           and p.name != pipeline.Store(artifacts, "synthetic").current("ingest")]
+    assert len(old) == 1 and old[0].is_dir()
+    assert pipeline.main(["gc", "--scene", "synthetic", "--artifacts", str(artifacts)]) == 0
+    assert f"removed {old[0]}" in capsys.readouterr().out and not old[0].exists()
+    assert all(f.read_text() == "a user's file" for f in user_files)
+    assert (artifacts / "synthetic" / "ingest" / "0123456789ab").is_dir()
+    assert pipeline.Store(artifacts, "synthetic").current("ingest") is not None
+
+
+def test_gc_drops_leftovers_of_ended_runs_only(artifacts):
+    import os
+    import socket
+    import subprocess
+
+    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    store = pipeline.Store(artifacts, "synthetic")
+    fp = store.current("ingest")
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    host = socket.gethostname()
+    names = {"dead": f".tmp-{fp}-{host}-{dead.pid}", "alive": f".tmp-{fp}-{host}-{os.getpid()}",
+             "published": f".ckpt-{fp}", "resumable": ".ckpt-0123456789ab"}
+    for name in names.values():
+        (store.stage_dir("ingest") / name).mkdir()
+        (store.stage_dir("ingest") / name / "state.pt").write_bytes(b"x" * 100)
+    removed = pipeline.gc(artifacts, "synthetic")
+    assert sorted(p.name for p in removed) == sorted([names["dead"], names["published"]])
+    assert (store.stage_dir("ingest") / names["alive"]).is_dir()
+    assert (store.stage_dir("ingest") / names["resumable"]).is_dir()
+    assert store.current("ingest") == fp
 
 
 def test_a_damaged_version_is_named_and_never_read(capsys, artifacts):
