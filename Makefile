@@ -8,7 +8,7 @@ VALUES ?=
 ARGS ?=
 PY := .venv/bin/python
 
-.PHONY: all stage test bench bench-refine results report sweep clean setup status view
+.PHONY: all stage test bench bench-refine profile results report sweep clean setup status view
 
 setup: .venv/.installed
 .venv/.installed: requirements.txt
@@ -44,6 +44,10 @@ bench: setup
 bench-refine: setup
 	$(PY) bench/bench_refine.py $(if $(filter command line,$(origin SCENE)),--scenes $(SCENE)) $(ARGS)
 	$(PY) bench/results_md.py
+
+# where the neural trainer's step spends its time; rays per CPU-second (docs/PERFORMANCE.md)
+profile: setup
+	$(PY) bench/profile_step.py --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) $(ARGS)
 
 results: setup
 	$(PY) bench/results_md.py

@@ -46,6 +46,14 @@ class RenderParams:
     cache_res: int = param(64, "cache: resolution of the SDF cache grid over the sphere's cube", lo=8, hi=512)
     cache_max_s: float = param(48.0, "cache: cap on s when weighting cached SDF values (about the cache's resolution)", lo=1.0)
     cache_every: int = param(50, "cache: refresh the SDF cache every this many iterations", lo=1)
+    skip_empty: bool = param(True, "cache: evaluate the network only at samples near the cached surface (|cached SDF| "
+                             "within the band below); elsewhere the cached SDF stands in (no gradient, colour 0), as "
+                             "NeuS2's occupancy grid skips empty space")
+    skip_band_cells: float = param(3.0, "skip_empty: the band's half-width in cache cells, at least", lo=0.0)
+    skip_band_sigmas: float = param(8.0, "skip_empty: the band's half-width in NeuS widths 1/s, at least (where the "
+                                    "logistic density is still above 3e-4 of its peak)", lo=0.0)
+    colour_min_weight: float = param(1e-4, "Colour network only at samples next to a section of at least this "
+                                     "rendering weight (0 = every sample)", lo=0.0)
     radius: float = param(1.0, "Radius of the bounding sphere (the object lies inside it)", lo=0.1)
     background: str = param("auto", "Background: 'black', 'white', 'constant' (learned), 'envmap' (learned, per direction), "
                             "'nerf++' (learned, NeRF++'s inverted-sphere field outside the bounding sphere: "
@@ -263,10 +271,13 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
     band_weights: [R, L] per-ray gate of the field's bands/levels (or None = all on).
     train: build the graph for losses (normals with create_graph, Eikonal gradients).
     Returns dict: rgb [R,3], depth [R] (expected t, not normalised), opacity [R], normal [R,3]
-    (unit, world frame), hit [R], weights [R,S-1], t [R,S]; with train also eik_grad [M,3].
+    (unit, world frame), hit [R], weights [R,S-1], t [R,S], evaluated (network-evaluated samples);
+    with train also eik_grad [M,3].
 
     All field evaluations of a call (ray samples, normal points, Eikonal points) go through ONE
-    batched field call, so grid gradients are accumulated once per step.
+    batched field call, so grid gradients are accumulated once per step. With ``p.skip_empty`` only
+    the samples near the cached surface reach the network (:func:`near_surface`); the SDF of the
+    others is the cache's, their colour 0 (their weight is ~0 either way).
     """
     R = o.shape[0]
     near, far, hit = sphere_bounds(o, d, p.radius)
@@ -278,32 +289,42 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
     bw = None if band_weights is None else band_weights.repeat_interleave(S, 0)
     need_grad = train and torch.is_grad_enabled()
     out = {"hit": hit, "t": t}
+    sdf_base, keep = near_surface(field, pts, hit, p, cache)  # [R*S] stand-in SDF, [K] evaluated indices
+    out["evaluated"] = R * S if keep is None else int(keep.shape[0])
+    x_eval = flat if keep is None else flat[keep]
+    bw_eval = bw if bw is None or keep is None else bw[keep]
+
+    def scatter(values_eval, base):  # evaluated values back to every sample [R*S, ...]
+        return values_eval if keep is None else base.index_copy(0, keep, values_eval)
+
     if field.color_uses_normal:
         # one SDF pass: autograd gives the per-sample normals the colour network reads
         with torch.enable_grad():
-            x_in = flat if flat.requires_grad else flat.detach().requires_grad_(True)
-            sdf, feat = field._sdf_feat(x_in, bw)
-            (grad,) = torch.autograd.grad(sdf.sum(), x_in, create_graph=need_grad)
-        normals_s = F.normalize(grad, dim=-1)
-        rgb = field._color(x_in, dirs, feat, normals_s)
-        sdf, rgb = sdf.reshape(R, S), rgb.reshape(R, S, 3)
+            x_in = x_eval if x_eval.requires_grad else x_eval.detach().requires_grad_(True)
+            sdf_e, feat = field._sdf_feat(x_in, bw_eval)
+            (grad,) = torch.autograd.grad(sdf_e.sum(), x_in, create_graph=need_grad)
+        normals_e = F.normalize(grad, dim=-1)
+        sdf = scatter(sdf_e, sdf_base).reshape(R, S)
+        rgb = _colour_where_weighted(field, sdf, x_in, dirs if keep is None else dirs[keep], feat, normals_e,
+                                     keep, p).reshape(R, S, 3)
         w, out = _composite(field, sdf, rgb, t, hit, o, d, background, out, perturb)
         if want_normals:
-            ns = normals_s.reshape(R, S, 3)
+            ns = scatter(normals_e, normals_e.new_zeros(R * S, 3)).reshape(R, S, 3)
             out["normal"] = F.normalize((w[..., None] * 0.5 * (ns[:, :-1] + ns[:, 1:])).sum(1), dim=-1)
         if need_grad and (p.eikonal_samples or p.eikonal_uniform):
             grads = []
-            if p.eikonal_samples:
-                idx = torch.randint(0, R * S, (min(p.eikonal_samples, R * S),), device=o.device)
+            if p.eikonal_samples and grad.shape[0]:
+                idx = torch.randint(0, grad.shape[0], (min(p.eikonal_samples, grad.shape[0]),), device=o.device)
                 grads.append(grad[idx])
             if p.eikonal_uniform:
                 g, _ = field.gradient(_uniform_ball(p.eikonal_uniform, p.radius, o.device), None)
                 grads.append(g)
-            out["eik_grad"] = torch.cat(grads, 0)
+            if grads:
+                out["eik_grad"] = torch.cat(grads, 0)
         return out
 
     # ---- fields whose colour needs no normals: batch everything into one field call
-    parts, bws, finishers = [flat], [bw], []
+    parts, bws, finishers = [x_eval], [bw_eval], []
     L = getattr(field, "n_bands", 0)
 
     def ones(n):
@@ -316,31 +337,32 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
         parts.append(pts_n)
         bws.append(None if band_weights is None else band_weights.repeat(k, 1))
         finishers.append(("normal", fin_n))
+    n_eval = x_eval.shape[0]
     if need_grad and (p.eikonal_samples or p.eikonal_uniform):
         xe, bwe = [], []
-        if p.eikonal_samples:
-            idx = torch.randint(0, R * S, (min(p.eikonal_samples, R * S),), device=o.device)
-            xe.append(flat[idx].detach())
-            bwe.append(None if bw is None else bw[idx])
+        if p.eikonal_samples and n_eval:
+            idx = torch.randint(0, n_eval, (min(p.eikonal_samples, n_eval),), device=o.device)
+            xe.append(x_eval[idx].detach())
+            bwe.append(None if bw_eval is None else bw_eval[idx])
         if p.eikonal_uniform:
             xe.append(_uniform_ball(p.eikonal_uniform, p.radius, o.device))
             bwe.append(ones(p.eikonal_uniform))
-        xe = torch.cat(xe)
-        pts_e, k, fin_e = field.gradient_points(xe, create_graph=True)
-        parts.append(pts_e)
-        bws.append(None if band_weights is None else torch.cat(bwe).repeat(k, 1))
-        finishers.append(("eik_grad", fin_e))
+        if xe:
+            xe = torch.cat(xe)
+            pts_e, k, fin_e = field.gradient_points(xe, create_graph=True)
+            parts.append(pts_e)
+            bws.append(None if band_weights is None else torch.cat(bwe).repeat(k, 1))
+            finishers.append(("eik_grad", fin_e))
     sizes = [x.shape[0] for x in parts]
     analytic = field.resolved_gradient_mode() == "analytic" and len(parts) > 1
     with torch.set_grad_enabled(torch.is_grad_enabled() or analytic):
-        x_all = torch.cat(parts) if len(parts) > 1 else flat
+        x_all = torch.cat(parts) if len(parts) > 1 else x_eval
         bw_all = None if band_weights is None else torch.cat(bws)
         sdf_all, feat_all = field._sdf_feat(x_all, bw_all)
-        n0 = sizes[0]
-        rgb = field._color(flat, dirs, feat_all[:n0], None)
-        sdf = sdf_all[:n0].reshape(R, S)
-        rgb = rgb.reshape(R, S, 3)
-        off = n0
+        sdf = scatter(sdf_all[:n_eval], sdf_base).reshape(R, S)
+        rgb = _colour_where_weighted(field, sdf, x_eval, dirs if keep is None else dirs[keep], feat_all[:n_eval],
+                                     None, keep, p).reshape(R, S, 3)
+        off = n_eval
         for (name, fin), size in zip(finishers, sizes[1:]):
             g, _ = fin(sdf_all[off:off + size])
             out[name] = g if name == "eik_grad" else F.normalize(g, dim=-1)
@@ -353,6 +375,39 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
         g, _ = field.gradient(o.detach() + t_s[:, None] * d.detach(), band_weights, create_graph=need_grad)
         out["normal"] = F.normalize(g, dim=-1)
     return out
+
+
+def near_surface(field, pts: torch.Tensor, hit: torch.Tensor, p: RenderParams, cache: SDFCache | None):
+    """Which samples pts [R,S,3] the network evaluates: (the cached SDF [R*S] that stands in for the
+    others, their flat indices [K]), or (None, None) = all. A sample is evaluated when its ray meets
+    the sphere and its cached |SDF| is within max(skip_band_cells cells, skip_band_sigmas / s): the
+    NeuS weight of a section farther from the surface is below the cache's own error."""
+    if not (p.skip_empty and p.sampler == "cache" and cache is not None and cache.grid is not None):
+        return None, None
+    R, S = pts.shape[:2]
+    f = cache.query(pts.detach())  # [R,S]
+    cell = 2.0 * cache.radius / (cache.res - 1)
+    band = max(p.skip_band_cells * cell, p.skip_band_sigmas / float(field.inv_s().detach()))
+    near = (f.abs() < band) & hit[:, None]
+    return f.reshape(-1), near.reshape(-1).nonzero()[:, 0]
+
+
+def _colour_where_weighted(field, sdf, x, dirs, feat, normals, keep, p: RenderParams):
+    """Colours [R*S,3] of the samples: the network's where a neighbouring section's weight (from the
+    SDF [R,S], no gradient) is at least ``p.colour_min_weight``, 0 elsewhere. x, dirs, feat, normals
+    are those of the evaluated samples (``keep`` [K] flat indices, or None = all)."""
+    R, S = sdf.shape
+    if p.colour_min_weight <= 0:
+        rgb = field._color(x, dirs, feat, normals)
+        return rgb if keep is None else rgb.new_zeros(R * S, 3).index_copy(0, keep, rgb)
+    with torch.no_grad():
+        w = alpha_to_weights(neus_alpha(sdf.detach(), field.inv_s().detach()))  # [R,S-1]
+        pad = w.new_zeros(R, 1)
+        heavy = (torch.maximum(torch.cat([w, pad], 1), torch.cat([pad, w], 1)) >= p.colour_min_weight).reshape(-1)
+        sel = heavy.nonzero()[:, 0] if keep is None else heavy[keep].nonzero()[:, 0]  # among the evaluated
+    rgb = field._color(x[sel], dirs[sel], feat[sel], None if normals is None else normals[sel])
+    where = sel if keep is None else keep[sel]
+    return rgb.new_zeros(R * S, 3).index_copy(0, where, rgb)
 
 
 def _uniform_ball(n, radius, device):

@@ -1,7 +1,7 @@
 """The pipeline's stages, in order. Each is one module; see docs/STAGES.md."""
 from manifoldneus.config import RunParams, SplitParams
 from manifoldneus.correspondence import CorrespondenceParams
-from manifoldneus.evaluation import MeshParams
+from manifoldneus.evaluation import MeshParams, NovelViewParams
 from manifoldneus.field import FieldParams
 from manifoldneus.gate import GateParams
 from manifoldneus.losses import LossParams
@@ -41,4 +41,5 @@ SHARED_SECTIONS = {
     "gate": GateParams,
     "correspondence": CorrespondenceParams,
     "meshing": MeshParams,
+    "novel_views": NovelViewParams,
 }

@@ -7,7 +7,8 @@
   exact surface (synthetic scenes: the observed part of it), or else against the mesh of the
   GT-pose `reference_surface`, labelled so. Distances in scene units and in data units (mm).
 - Novel views: held-out views rendered from the final model with their GT poses mapped into
-  the model's frame through the inverse Sim3; PSNR/SSIM masked and unmasked.
+  the model's frame through the inverse Sim3; PSNR/SSIM masked and unmasked; and again after
+  test-time alignment (each held-out pose refined against the frozen field: `aligned_*`).
 """
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "mesh", "reference_surface")
-SECTIONS = ("evaluate", "run", "split")
+SECTIONS = ("evaluate", "run", "split", "novel_views")
 OUTPUTS = ("evaluation.json", "pose_error_rounds.png")
 
 
@@ -191,7 +192,7 @@ def run(ctx) -> None:
         if views.masks is None and "masks" in gt:  # scored on the object too, as a masked run is
             views = dataclasses.replace(views, masks=gt["masks"])
         report["novel_views"] = evaluation.novel_views(trainer, views, held, test_w2c, ctx.out / "novel_views",
-                                                       ctx.progress)
+                                                       ctx.progress, align=ctx.section("novel_views"))
     io.save_json(ctx.out / "evaluation.json", report)
     fin = rows[-1]["summary"]
     ctx.metrics.update(

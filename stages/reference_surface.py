@@ -27,7 +27,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "ground_truth")
-SECTIONS = ("reference_surface", "train", "field", "render", "loss", "meshing", "run", "split")
+SECTIONS = ("reference_surface", "train", "field", "render", "loss", "meshing", "run", "split", "novel_views")
 OUTPUTS = ("reference.json",)
 
 
@@ -66,7 +66,8 @@ def run(ctx) -> None:
     masks = None if views.masks is None else views.masks[train_ids]
     mesh = evaluation.make_mesh(trainer, mp, views.K[train_ids], w2c[train_ids], masks, views.images.shape[1:3])
     evaluation.save_mesh_with_preview(mesh, ctx.out, mp, w2c=w2c[train_ids])
-    nvs = evaluation.novel_views(trainer, views, np.flatnonzero(held), w2c, ctx.out / "novel_views", ctx.progress)
+    nvs = evaluation.novel_views(trainer, views, np.flatnonzero(held), w2c, ctx.out / "novel_views", ctx.progress,
+                                 align=ctx.section("novel_views"))
     rays = summary["steps"] * tp.batch_rays
     io.save_json(ctx.out / "reference.json", {
         "trained": True, "label": "reference: trained with GROUND-TRUTH poses", "train": summary,

@@ -119,6 +119,30 @@ def test_the_nerfpp_background_learns_the_parallax_of_a_near_background_an_envma
     assert errors["nerf++"] < 0.3 * errors["envmap"], errors
 
 
+def test_skipping_empty_space_renders_the_same_with_fewer_network_evaluations():
+    size, r = 48, 0.5
+    K, W = ring_cameras(1, size=size)
+    field = SphereField(r, variance=0.5)  # s = e^5: a formed surface
+    cache = SDFCache(48, 1.0)
+    cache.update(lambda x: field.sdf(x))
+    cols, rows = pixel_grid(size, size)
+    o, d = camera_rays(cols, rows, torch.tensor(K[0], dtype=torch.float32), torch.tensor(W[0][:3], dtype=torch.float32))
+    every = RenderParams(skip_empty=False, colour_min_weight=0.0, cache_res=48)
+    outs = {name: render_rays(field, o, d, dataclasses.replace(every, **kw), cache=cache, background=Background("black"))
+            for name, kw in (("every", {}), ("skip", {"skip_empty": True}),
+                             ("skip+colour", {"skip_empty": True, "colour_min_weight": 1e-4}))}
+    assert outs["every"]["evaluated"] == size * size * (every.n_uniform + every.n_importance)
+    hit = analytic_hit(K[0], W[0], size, r)[0].reshape(-1)
+    for name in ("skip", "skip+colour"):
+        assert outs[name]["evaluated"] < 0.8 * outs["every"]["evaluated"], name
+        for key in ("rgb", "opacity", "depth"):
+            assert (outs[name][key] - outs["every"][key]).abs().max() < 2e-2, (name, key)
+    # the rays that miss the ball reach the network nowhere
+    miss_any = RenderParams(cache_res=48, n_uniform=8, n_importance=0)
+    t = render_rays(field, o[~torch.as_tensor(hit)], d[~torch.as_tensor(hit)], miss_any, cache=cache)
+    assert t["evaluated"] < 0.3 * (~hit).sum() * 8
+
+
 def test_marching_cubes_sphere_radius():
     r = 0.6
     mesh = extract_mesh(lambda x: np.linalg.norm(x, axis=1) - r, resolution=64)
@@ -227,12 +251,20 @@ def tiny_params(iters):
     return fp, rp, tp, TrainRun(iters=iters, threads=1)
 
 
-def test_training_loss_falls_and_checkpoint_roundtrip(tmp_path):
+@pytest.fixture(scope="module")
+def trained_tiny():
+    """(views, trainer, rgb losses) of 200 iterations on the synthetic views (shared by this module)."""
     views = synthetic_views()
     fp, rp, tp, run = tiny_params(200)
     tr = Trainer(views, fp, rp, LossParams(), tp, run=run)
     losses = []
     tr.train(callback=lambda t, info: losses.append(info["loss_rgb"]))
+    return views, tr, losses
+
+
+def test_training_loss_falls_and_checkpoint_roundtrip(tmp_path, trained_tiny):
+    views, tr, losses = trained_tiny
+    fp, rp, tp, run = tiny_params(200)
     assert np.mean(losses[-3:]) < 0.6 * np.mean(losses[:2])
     out = tr.render_view(0)
     assert psnr(out["rgb"], views.images[0], views.masks[0]) > 15
@@ -244,6 +276,44 @@ def test_training_loss_falls_and_checkpoint_roundtrip(tmp_path):
     s1 = tr.field.sdf(torch.zeros(1, 3))
     s2 = tr2.field.sdf(torch.zeros(1, 3))
     assert torch.allclose(s1, s2)
+
+
+def test_test_time_alignment_undoes_a_held_out_pose_error_against_the_frozen_field(trained_tiny):
+    from manifoldneus.evaluation import NovelViewParams, align_test_poses, novel_views
+
+    views, tr, _ = trained_tiny
+    true_w2c = np.asarray(views.w2c, float)
+    off = true_w2c.copy()
+    for i, axis in ((1, [1.0, 0, 0]), (3, [0, 1.0, 0])):  # 2 degrees off, and a small shift
+        import roma
+
+        R = roma.rotvec_to_rotmat(torch.tensor(axis, dtype=torch.float64) * math.radians(2.0)).numpy()
+        off[i, :3, :3] = R @ off[i, :3, :3]
+        off[i, :3, 3] += 0.03
+    before = {k: p.detach().clone() for k, p in tr.field.state_dict().items()}
+    small = tr.views
+    p = NovelViewParams(align_steps=150, align_rays=512, align_lr=3e-3)
+    aligned, moved = align_test_poses(tr, small, [1, 3], off, p)
+
+    from manifoldneus.rays import project
+
+    pts = torch.as_tensor(np.random.default_rng(0).uniform(-0.4, 0.4, (200, 3)))  # about the object
+
+    def err(w2c, i):  # mean image displacement (px) of points on the object against the true pose
+        K = torch.as_tensor(tr.views.K[i])
+        return float((project(pts, K, torch.as_tensor(w2c[i]))[0] - project(pts, K, torch.as_tensor(true_w2c[i]))[0])
+                     .norm(dim=-1).mean())
+
+    for i in (1, 3):
+        assert err(aligned, i) < 0.5 * err(off, i), (i, err(off, i), err(aligned, i))
+        assert moved[i][0] > 0.2
+    assert np.array_equal(aligned[0], off[0])  # views not asked for stay
+    assert all(torch.equal(before[k], v) for k, v in tr.field.state_dict().items())  # the field stays frozen
+    assert all(q.requires_grad for q in tr.field.parameters())
+    scored = novel_views(tr, dataclasses.replace(views, names=[f"v{i}" for i in range(views.n)]), [1, 3], off, align=p)
+    for row in scored["per_view"]:
+        assert row["aligned_psnr_masked"] > row["psnr_masked"] + 1.0
+    assert scored["summary"]["aligned_psnr_masked"] > scored["summary"]["psnr_masked"]
 
 
 def test_an_unmasked_trainer_with_the_nerfpp_background_trains_and_reloads_it(tmp_path):

@@ -1,0 +1,162 @@
+"""Profile of the neural trainer's step: where a step's time goes, rays per CPU-second, samples per
+second and the fraction of the machine's peak (docs/PERFORMANCE.md).
+
+Trains on a scene's views with its ground-truth poses, poses learned as the anchors learn them
+(every 8th view held out), the project's default field, render and train parameters at the fast
+profile's resolution. After ``--warm`` steps (the field has formed a surface) it times ``--steps``
+steps (wall and process CPU seconds), then profiles ``--profile-steps`` more with torch.profiler and
+groups them by the trainer's labelled parts. ``--code DIR`` runs another checkout's manifoldneus
+(the same script measures old and new code in one sitting). Several seeds: mean and spread.
+
+    .venv/bin/python bench/profile_step.py --scene scan24 --seeds 0,1,2
+    .venv/bin/python bench/profile_step.py --code /tmp/old --label old     # a checkout of older code
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+PARTS = ("train/sdf_cache", "train/sample_rays", "train/render", "train/losses", "train/pose_term",
+         "train/backward", "train/optimiser")
+
+
+def cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def peak_gflops(threads: int, seconds: float = 1.0) -> float:
+    """Measured fp32 matmul rate of this machine (a 1024^3 GEMM on ``threads`` threads): the peak
+    the step's FLOPs are compared with."""
+    import torch
+
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    a @ b
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        a @ b
+        n += 1
+    return 2 * 1024**3 * n / (time.perf_counter() - t0) / 1e9
+
+
+def one_seed(args, seed: int) -> dict:
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    from bench.bench_neural import load_scene
+    from manifoldneus.field import FieldParams
+    from manifoldneus.losses import LossParams
+    from manifoldneus.render import RenderParams
+    from manifoldneus.train import TrainParams, Trainer, TrainRun
+
+    sections = [FieldParams(), RenderParams(), LossParams(), TrainParams(batch_rays=args.rays, image_size=args.size)]
+    for item in args.set:
+        key, value = item.split("=", 1)
+        owner = next((s for s in sections if hasattr(s, key)), None)
+        if owner is None:
+            raise SystemExit(f"--set {item}: no field, render, loss or train parameter {key!r}")
+        setattr(owner, key, type(getattr(owner, key))(yaml.safe_load(value)))
+    views = load_scene(args.scene)
+    train_ids = [i for i in range(views.n) if i % 8]
+    tr = Trainer(views, *sections, train_views=train_ids,
+                 run=TrainRun(iters=args.iters, learn_poses=True, pose_lr=2e-4, seed=seed, threads=args.threads))
+    for _ in range(args.warm):
+        tr.train_step()
+    t0, c0 = time.perf_counter(), cpu_s()
+    for _ in range(args.steps):
+        tr.train_step()
+    wall, cpu = (time.perf_counter() - t0) / args.steps, (cpu_s() - c0) / args.steps
+    # network-evaluated samples per ray, as the step renders them (no gradients, same sampler)
+    from manifoldneus.render import render_rays
+
+    with torch.no_grad():
+        b = tr.sample_batch(args.rays)
+        out = render_rays(tr.field, b["o"], b["d"], tr.rp, cache=tr.cache, background=tr.background, perturb=True)
+    evaluated = out.get("evaluated", out["t"].numel()) / args.rays
+    with profile(activities=[ProfilerActivity.CPU], with_flops=True) as prof:
+        for _ in range(args.profile_steps):
+            tr.train_step()
+    events = prof.key_averages()
+    parts = {e.key: e.cpu_time_total / 1e3 / args.profile_steps for e in events if e.key in PARTS}
+    flops = sum(e.flops for e in events if e.flops) / args.profile_steps
+    ops = sorted(((e.key, e.self_cpu_time_total / 1e3 / args.profile_steps) for e in events
+                  if not e.key.startswith("train/")), key=lambda kv: -kv[1])[:8]
+    return {"seed": seed, "wall_ms": 1e3 * wall, "cpu_ms": 1e3 * cpu, "rays_per_cpu_s": args.rays / cpu,
+            "rays_per_wall_s": args.rays / wall, "evaluated_per_ray": evaluated,
+            "samples_per_cpu_s": evaluated * args.rays / cpu, "inv_s": float(tr.field.inv_s().detach()),
+            "parts_ms": parts, "top_ops_ms": dict(ops), "gflop_per_step_matmul": flops / 1e9}
+
+
+def spread(values) -> str:
+    v = np.asarray(values, float)
+    return f"{v.mean():.1f} ± {v.std(ddof=1) if len(v) > 1 else 0.0:.1f}"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="scan24")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--warm", type=int, default=200, help="steps before timing (the surface forms)")
+    ap.add_argument("--steps", type=int, default=50, help="timed steps")
+    ap.add_argument("--profile-steps", type=int, default=10)
+    ap.add_argument("--iters", type=int, default=600, help="the run's length (its lr schedule); the anchors' 600")
+    ap.add_argument("--rays", type=int, default=1024)
+    ap.add_argument("--size", type=int, default=192, help="training image size (longest side)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--code", type=Path, default=HERE.parent, help="the checkout whose manifoldneus is measured")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a field, render, loss or train parameter (e.g. n_importance=16); repeatable")
+    ap.add_argument("--label", default="current")
+    ap.add_argument("--out", type=Path, default=None, help="JSON (default bench/perf/profile-<label>-<date>.json)")
+    args = ap.parse_args()
+    sys.path.insert(0, str(HERE.parent))  # bench.bench_neural: this checkout's scene loader
+    sys.path.insert(0, str(args.code.resolve()))
+    import manifoldneus
+
+    code = Path(manifoldneus.__file__).resolve().parent.parent
+    commit = subprocess.run(["git", "-C", str(code), "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    runs = [one_seed(args, int(s)) for s in args.seeds.split(",")]
+    peak = peak_gflops(args.threads)
+    dirty = subprocess.run(["git", "-C", str(code), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True).stdout.strip()
+    commit += "+uncommitted" if dirty else ""
+    res = {"label": args.label, "code": str(code), "commit": commit, "set": args.set, "scene": args.scene, "rays": args.rays,
+           "size": args.size, "threads": args.threads, "warm": args.warm, "steps": args.steps,
+           "peak_gflops_measured": peak, "runs": runs, "date": time.strftime("%Y-%m-%d %H:%M")}
+    print(f"{args.label} ({commit}), {args.scene}, {args.rays} rays/step at {args.size} px, {args.threads} threads")
+    for key in ("wall_ms", "cpu_ms", "rays_per_cpu_s", "rays_per_wall_s", "evaluated_per_ray", "samples_per_cpu_s"):
+        print(f"  {key:<20} {spread([r[key] for r in runs])}")
+    print("  where a step's time goes (ms, CPU total of each labelled part, seed 0):")
+    for k, v in runs[0]["parts_ms"].items():
+        print(f"    {k:<22} {v:7.1f}")
+    print("  heaviest operators (ms self CPU per step, seed 0): "
+          + ", ".join(f"{k} {v:.1f}" for k, v in runs[0]["top_ops_ms"].items()))
+    gf = np.mean([r["gflop_per_step_matmul"] for r in runs])
+    cpu = np.mean([r["cpu_ms"] for r in runs]) / 1e3
+    print(f"  matmul FLOPs {gf:.2f} GFLOP/step: {gf / cpu:.1f} GFLOP per CPU-second; measured peak "
+          f"{peak:.0f} GFLOP/s on {args.threads} threads ({100 * gf / cpu / (peak / args.threads):.0f} % of one "
+          f"core's peak per CPU-second)")
+    out = args.out or HERE / "perf" / f"profile-{args.label}-{time.strftime('%Y-%m-%d')}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=2) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
