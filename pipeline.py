@@ -38,6 +38,7 @@ import logging
 import os
 import re
 import shutil
+import signal
 import socket
 import sys
 import threading
@@ -53,6 +54,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import cv2  # noqa: E402,F401  - loads the system zlib before pycolmap's own deflate symbols can shadow it
+import pycolmap  # noqa: E402,F401  - imported before main() takes SIGTERM from the failure handler pycolmap installs
 import yaml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent
@@ -71,6 +73,15 @@ LIBRARIES = ("numpy", "scipy", "torch", "cv2", "pycolmap", "skimage", "trimesh",
 
 class PipelineError(RuntimeError):
     """A user-facing error: printed as one clear message, without a traceback."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what `timeout`, SLURM and `kill` send): handled as Ctrl-C is, so the stage in progress
+    is moved aside as `.failed-*` and nothing half-written is published."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
 
 
 # ---------------------------------------------------------------------------- stages
@@ -1088,14 +1099,18 @@ def main(argv: list[str] | None = None) -> int:
     """The CLI: every expected failure is one `error:` line and exit code 2 (130 for Ctrl-C);
     ``--debug`` re-raises it with its traceback."""
     args = _parser().parse_args(argv)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return _command(args)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:
         if args.debug:
             raise
-        print("interrupted: nothing half-written was published; run the same command again to go on "
+        why = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+        # on a line of its own, after whatever progress bar was drawing
+        print(f"\n{why}: nothing half-written was published; run the same command again to go on "
               "(trainings resume from their checkpoints)", file=sys.stderr)
-        return 130
+        return 143 if isinstance(e, Terminated) else 130
     except (PipelineError, ParamError, SceneError) as e:
         if args.debug:
             raise

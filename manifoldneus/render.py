@@ -340,10 +340,10 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
     n_eval = x_eval.shape[0]
     if need_grad and (p.eikonal_samples or p.eikonal_uniform):
         xe, bwe = [], []
-        if p.eikonal_samples and n_eval:
-            idx = torch.randint(0, n_eval, (min(p.eikonal_samples, n_eval),), device=o.device)
-            xe.append(x_eval[idx].detach())
-            bwe.append(None if bw_eval is None else bw_eval[idx])
+        if p.eikonal_samples:  # from every sample, skipped ones too: the free space keeps a distance field
+            idx = torch.randint(0, R * S, (min(p.eikonal_samples, R * S),), device=o.device)
+            xe.append(flat[idx].detach())
+            bwe.append(None if bw is None else bw[idx])
         if p.eikonal_uniform:
             xe.append(_uniform_ball(p.eikonal_uniform, p.radius, o.device))
             bwe.append(ones(p.eikonal_uniform))

@@ -29,6 +29,7 @@ TINY = [
     "anchors.iters=40", "successors.iters=30", "successors.final_iters=40",
     "field.grid_levels=3", "field.grid_max_res=32", "render.cache_res=32",
     "meshing.resolution=48", "evaluate.chamfer_points=4000", "schedule.successors_per_round=4",
+    "novel_views.align_steps=40", "novel_views.align_rays=256",
 ]
 
 

@@ -45,6 +45,8 @@ def test_rounds_and_evaluation(tiny_run):
     assert labels[:2] == ["initial", "anchors"] and labels[2:] == rounds
     assert ev["poses"][0]["summary"]["rot_err_deg"]["mean"] < 2.0  # matches-based init, before any training
     assert np.isfinite(ev["geometry"]["chamfer"]) and ev["novel_views"]["per_view"]
+    for row in ev["novel_views"]["per_view"]:  # scored at the mapped GT pose and after test-time alignment
+        assert np.isfinite(row["psnr"]) and np.isfinite(row["aligned_psnr"]) and row["align_rot_deg"] >= 0
     colmap = current(artifacts, "mesh") / "colmap"
     assert (colmap / "images.txt").read_text().count(".png") == int(final["placed"].sum())
     # every trained round checked its held-out tracks (the guard) and says whether it rolled back

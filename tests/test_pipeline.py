@@ -9,7 +9,7 @@ import pytest
 import pipeline
 from manifoldneus.config import ParamError
 from manifoldneus.scenes import SceneError
-from tests.conftest import needs_dtu
+from tests.conftest import TINY, needs_dtu
 
 FAST_SYNTH = ["ingest.synthetic_views=6", "ingest.synthetic_resolution=64", "ingest.synthetic_surface_points=2000"]
 
@@ -262,6 +262,34 @@ def test_gc_drops_leftovers_of_ended_runs_only(artifacts):
     assert (store.stage_dir("ingest") / names["alive"]).is_dir()
     assert (store.stage_dir("ingest") / names["resumable"]).is_dir()
     assert store.current("ingest") == fp
+
+
+def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    artifacts = tmp_path / "artifacts"
+    cmd = [sys.executable, str(pipeline.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "anchors",
+           "--artifacts", str(artifacts), *sum((["--set", s] for s in TINY), [])]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    seen = []
+    for line in proc.stderr:  # terminate it inside COLMAP's stage (pycolmap has a signal handler of its own)
+        seen.append(line)
+        if line.startswith("[reference] running"):
+            proc.send_signal(signal.SIGTERM)
+            break
+    rest = proc.stderr.read()
+    assert proc.wait() == 143, "".join(seen) + rest
+    assert "terminated (SIGTERM): nothing half-written was published" in rest
+    assert "Traceback" not in rest and "***" not in rest and len(rest.strip().splitlines()) <= 2, rest
+    store = pipeline.Store(artifacts, "synthetic")
+    for stage in pipeline.load_stages():
+        stage_dir = store.stage_dir(stage)
+        for entry in stage_dir.iterdir() if stage_dir.is_dir() else ():
+            assert not entry.name.startswith(".tmp-"), f"left behind: {entry}"
+            if not entry.name.startswith(".") and not entry.is_symlink():
+                assert store.is_complete(stage, entry.name), f"partial version visible: {entry}"
 
 
 def test_a_damaged_version_is_named_and_never_read(capsys, artifacts):
