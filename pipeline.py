@@ -968,25 +968,27 @@ def _stage_folders(scene_dir: Path, stage_names) -> list[Path]:
                   and any(_our_version(d, v) for v in d.iterdir()))
 
 
-def gc_scene_dirs(artifacts: Path, scene_name: str | None = None, data_root=None) -> list[Path]:
-    """The scene folders gc acts on: the one `run` would use for ``scene_name`` (resolved as `run`
-    resolves it), or every folder of the artifacts root that holds versions of ours. Only direct
-    children of the artifacts root; nothing is created."""
+def gc_scene_dirs(artifacts: Path, scene_name: str | None = None, data_root=None) -> dict[Path, list[Path]]:
+    """The scene folders gc acts on, each with its stage folders that hold versions of ours: the one
+    `run` would use for ``scene_name`` (resolved as `run` resolves it), or every folder of the
+    artifacts root that holds versions of ours. Only direct children of the artifacts root; nothing
+    is created."""
     root = Path(artifacts)
     if not root.is_dir():
         raise PipelineError(f"artifacts folder {root} does not exist: nothing to collect")
     stage_names = set(load_stages())
     if scene_name is None:
-        return [d for d in sorted(root.iterdir())
-                if d.is_dir() and not d.is_symlink() and _stage_folders(d, stage_names)]
+        found = {d: _stage_folders(d, stage_names) for d in sorted(root.iterdir()) if d.is_dir() and not d.is_symlink()}
+        return {d: stage_dirs for d, stage_dirs in found.items() if stage_dirs}
     scene = resolve_scene(scene_name, data_root)
     scene_dir = root / scene.name
     if scene_dir.is_symlink() or scene_dir.resolve().parent != root.resolve():
         raise PipelineError(f"scene {scene_name!r} maps to {scene_dir}, which is not a folder of {root}: gc leaves it alone")
-    if not scene_dir.is_dir() or not _stage_folders(scene_dir, stage_names):
+    stage_dirs = _stage_folders(scene_dir, stage_names) if scene_dir.is_dir() else []
+    if not stage_dirs:
         raise PipelineError(f"no artifacts of scene {scene.name!r} in {root} (the scene {scene_name!r} resolves to "
                             f"it as `run` does): nothing to collect")
-    return [scene_dir]
+    return {scene_dir: stage_dirs}
 
 
 def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None, data_root=None,
@@ -996,11 +998,9 @@ def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None, data_
     leftovers of runs that ended: `.tmp-*` of dead processes, `.failed-*`, and checkpoints of
     versions since published. Returns what it removed (with ``dry_run``, what it would remove): path -> bytes."""
     removed: dict[Path, int] = {}
-    stage_names = set(load_stages())
-    for scene_dir in gc_scene_dirs(artifacts, scene_name, data_root):
+    for scene_dir, stage_dirs in gc_scene_dirs(artifacts, scene_name, data_root).items():
         store = Store(Path(artifacts), scene_dir.name)
         with store.lock():
-            stage_dirs = _stage_folders(scene_dir, stage_names)
             # what the pointers name, and the upstream versions those were computed from: a version
             # reused through the content digest may name an upstream version no pointer names
             todo = [(d.name, os.readlink(p)) for d in stage_dirs for p in d.iterdir()

@@ -171,12 +171,10 @@ def align_test_poses(trainer: Trainer, small: Views, ids, w2c: np.ndarray, p: No
         refined = cams.poses(p.align_steps).double().cpu().numpy()  # [M,3,4]
     out_w2c = np.array(w2c, dtype=np.float64)
     out_w2c[ids, :3, :4] = refined
-    moved = {}
-    for k, i in enumerate(ids):
-        turn = cameras.rotation_angle_deg(refined[k, :, :3] @ np.asarray(w2c)[i, :3, :3].T)
-        shift = np.linalg.norm(cameras.camera_centers(out_w2c[i:i + 1])[0] - cameras.camera_centers(np.asarray(w2c)[i:i + 1])[0])
-        moved[int(i)] = (float(turn), float(shift))
-    return out_w2c, moved
+    given = np.asarray(w2c, dtype=np.float64)
+    turns = cameras.rotation_angle_deg(refined[:, :, :3] @ given[ids, :3, :3].transpose(0, 2, 1))  # [M]
+    shifts = np.linalg.norm(cameras.camera_centers(out_w2c[ids]) - cameras.camera_centers(given[ids]), axis=-1)  # [M]
+    return out_w2c, {int(i): (float(r), float(c)) for i, r, c in zip(ids, turns, shifts)}
 
 
 def _score(pred: np.ndarray, real: np.ndarray, mask: np.ndarray | None, prefix: str = "") -> dict:
@@ -201,9 +199,10 @@ def novel_views(trainer: Trainer, views: Views, ids, w2c: np.ndarray, out_dir: P
     if align is not None and align.align_steps > 0 and len(ids):
         aligned_w2c, moved = align_test_poses(trainer, small, ids, w2c, align)
     rows = []
+    images = small.float_images()
     it = progress(ids, desc="novel views") if progress else ids
     for i in it:
-        real = small.float_images()[i]
+        real = images[i]
         m = None if small.masks is None else small.masks[i]
 
         def render(pose):

@@ -347,12 +347,11 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
         if p.eikonal_uniform:
             xe.append(_uniform_ball(p.eikonal_uniform, p.radius, o.device))
             bwe.append(ones(p.eikonal_uniform))
-        if xe:
-            xe = torch.cat(xe)
-            pts_e, k, fin_e = field.gradient_points(xe, create_graph=True)
-            parts.append(pts_e)
-            bws.append(None if band_weights is None else torch.cat(bwe).repeat(k, 1))
-            finishers.append(("eik_grad", fin_e))
+        xe = torch.cat(xe)
+        pts_e, k, fin_e = field.gradient_points(xe, create_graph=True)
+        parts.append(pts_e)
+        bws.append(None if band_weights is None else torch.cat(bwe).repeat(k, 1))
+        finishers.append(("eik_grad", fin_e))
     sizes = [x.shape[0] for x in parts]
     analytic = field.resolved_gradient_mode() == "analytic" and len(parts) > 1
     with torch.set_grad_enabled(torch.is_grad_enabled() or analytic):
