@@ -15,6 +15,7 @@ setup: .venv/.installed
 	python3 -m venv .venv
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -r requirements.txt
+	$(PY) -c "from manifoldneus.grid_encoding import fused_kernel; fused_kernel()"  # builds the CPU grid kernel once
 	touch $@
 
 all: setup

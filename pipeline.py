@@ -236,10 +236,19 @@ def _imported_names(path: Path, module_name: str) -> set[str]:
     return names
 
 
+def _native_sources(path: Path) -> list[Path]:
+    """Files a module compiles at run time, named by its literal ``__native_sources__`` (paths
+    relative to the module's folder)."""
+    for node in ast.parse(path.read_text(), filename=str(path)).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__native_sources__" for t in node.targets):
+            return [path.parent / rel for rel in ast.literal_eval(node.value)]
+    return []
+
+
 def _code_files(module: types.ModuleType) -> list[Path]:
     """Source files of the stage module and of every ``manifoldneus``/``stages`` module it can reach
     through imports, transitively, including imports inside function bodies (an AST pass, so a
-    lazily imported module is covered before it has ever been loaded)."""
+    lazily imported module is covered before it has ever been loaded), and the C++ they compile."""
     seen: dict[str, Path] = {}
     todo = [module.__name__]
     while todo:
@@ -253,7 +262,8 @@ def _code_files(module: types.ModuleType) -> list[Path]:
         todo.extend(p for p in (".".join(name.split(".")[:i]) for i in range(1, name.count(".") + 1))
                     if p != "stages")
         todo.extend(_imported_names(path, name))
-    return sorted(set(seen.values()))
+    native = [src for path in seen.values() for src in _native_sources(path)]
+    return sorted(set(seen.values()) | set(native))
 
 
 def code_hash(stage: Stage) -> str:

@@ -94,7 +94,7 @@ def one_seed(args, seed: int) -> dict:
     parts = {e.key: e.cpu_time_total / 1e3 / args.profile_steps for e in events if e.key in PARTS}
     flops = sum(e.flops for e in events if e.flops) / args.profile_steps
     ops = sorted(((e.key, e.self_cpu_time_total / 1e3 / args.profile_steps) for e in events
-                  if not e.key.startswith("train/")), key=lambda kv: -kv[1])[:8]
+                  if not e.key.startswith("train/")), key=lambda kv: -kv[1])[:16]
     return {"seed": seed, "wall_ms": 1e3 * wall, "cpu_ms": 1e3 * cpu, "rays_per_cpu_s": args.rays / cpu,
             "rays_per_wall_s": args.rays / wall, "evaluated_per_ray": evaluated,
             "samples_per_cpu_s": evaluated * args.rays / cpu, "inv_s": float(tr.field.inv_s().detach()),

@@ -30,6 +30,7 @@ import torch.nn.functional as F
 
 from manifoldneus.config import param
 from manifoldneus.field import fourier_encode
+from manifoldneus.grid_encoding import encode
 from manifoldneus.rays import camera_rays, pixel_grid, sphere_bounds
 
 
@@ -158,8 +159,9 @@ class SDFCache:
     def query(self, x: torch.Tensor) -> torch.Tensor:
         """Trilinear look-up at points [...,3] -> [...]; points outside the cube read the border."""
         shp = x.shape[:-1]
-        g = (x.reshape(1, -1, 1, 1, 3) / self.radius).float()
-        v = F.grid_sample(self.grid, g, mode="bilinear", padding_mode="border", align_corners=True)
+        # clamping to the cube is grid_sample's padding_mode="border" (align_corners=True)
+        u = (x.reshape(-1, 3) / self.radius).float().clamp(-1.0, 1.0)
+        v = encode(u, [self.grid.view(self.res, self.res, self.res, 1)])
         return v.reshape(shp).to(x.dtype)
 
     def state_dict(self) -> dict:

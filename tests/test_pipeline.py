@@ -116,6 +116,9 @@ def test_code_hash_covers_package_modules():
     assert "synthetic.py" in evaluate
     # ...but not modules the stage never reaches, nor the stage registry
     assert "train.py" not in files and "stages/__init__.py" not in files
+    # the C++ a reached module compiles at run time is part of the stage's code
+    anchors = {p.relative_to(pipeline.ROOT).as_posix() for p in pipeline._code_files(stages["anchors"].module)}
+    assert "manifoldneus/csrc/grid_encoding.cpp" in anchors and "manifoldneus/csrc/grid_encoding.cpp" not in files
 
 
 def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_path, monkeypatch):

@@ -1,0 +1,113 @@
+"""Multi-level dense feature grids: trilinear look-up of L channel-last tables at points.
+
+Convention (owned here): level l is a parameter of shape [R_l, R_l, R_l, C] indexed [z, y, x, c];
+a point's normalised coordinate u in [-1, 1]^3 (x, y, z) maps to (u + 1) / 2 * (R_l - 1), as
+``grid_sample(mode="bilinear", padding_mode="zeros", align_corners=True)``; corners outside a table
+read zero. :func:`encode` returns the levels' features side by side, [N, L*C].
+
+Two kernels compute the same thing:
+
+* ``fused`` (CPU): ``csrc/grid_encoding.cpp``, built once per torch version with the machine's C++
+  compiler (about 30 s, cached under ``~/.cache/manifoldneus``). One pass over the points for all
+  levels forward, one backward (threads split the levels, so no atomics); about half the CPU time of
+  ``grid_sample`` here (docs/PERFORMANCE.md). Not twice differentiable.
+* ``torch``: ``F.grid_sample`` per level; any device, twice differentiable.
+
+``kernel="auto"`` takes ``fused`` for CPU tensors when it builds, else ``torch`` (once, a warning
+names what is missing). A field whose SDF gradients come from autograd (their own gradient is taken
+for the Eikonal loss) asks for ``torch``.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+log = logging.getLogger(__name__)
+
+KERNELS = ("auto", "fused", "torch")
+__native_sources__ = ("csrc/grid_encoding.cpp",)  # part of the code fingerprint of the stages using it
+_SOURCE = Path(__file__).parent / __native_sources__[0]
+_ext = None
+_ext_error: str | None = None
+
+
+def _build_dir() -> Path:
+    root = Path(os.environ.get("MANIFOLDNEUS_CACHE", Path.home() / ".cache" / "manifoldneus"))
+    return root / f"grid_encoding-torch{torch.__version__.replace('+', '_')}"
+
+
+def fused_kernel():
+    """The compiled CPU kernel, or None (the reason is in :func:`fused_unavailable_reason`)."""
+    global _ext, _ext_error
+    if _ext is None and _ext_error is None:
+        try:
+            from torch.utils.cpp_extension import load
+
+            d = _build_dir()
+            d.mkdir(parents=True, exist_ok=True)
+            # the venv's ninja (requirements.txt) when the venv is not activated
+            os.environ["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"
+            _ext = load("manifoldneus_grid_encoding", [str(_SOURCE)], build_directory=str(d),
+                        extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
+        except Exception as e:  # no compiler, no headers, a read-only home: grid_sample still works
+            _ext_error = f"{type(e).__name__}: {str(e).strip().splitlines()[-1][:200] if str(e).strip() else ''}"
+            log.warning("the fused grid kernel could not be built (%s); the grids use torch's grid_sample, "
+                        "about twice as slow on the CPU. It needs a C++ compiler (g++) and Python's headers.",
+                        _ext_error)
+    return _ext
+
+
+def fused_unavailable_reason() -> str | None:
+    fused_kernel()
+    return _ext_error
+
+
+class _FusedEncoding(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, u, res, *tables):
+        ext = fused_kernel()
+        flat = [t.reshape(-1) for t in tables]
+        C = tables[0].shape[-1]
+        ctx.save_for_backward(u, *tables)
+        ctx.res, ctx.C = res, C
+        return ext.forward(u, flat, list(res), C)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):
+        u, *tables = ctx.saved_tensors
+        need_u = ctx.needs_input_grad[0]
+        out = fused_kernel().backward(grad_out, u, [t.reshape(-1) for t in tables], list(ctx.res), ctx.C, need_u)
+        grads = [g.view_as(t) for g, t in zip(out[: len(tables)], tables)]
+        return (out[-1] if need_u else None), None, *grads
+
+
+def resolve_kernel(kernel: str, device: torch.device) -> str:
+    """The kernel ``kernel`` ('auto', 'fused', 'torch') means on ``device``."""
+    if kernel not in KERNELS:
+        raise ValueError(f"unknown grid kernel {kernel!r}; one of {KERNELS}")
+    if kernel == "torch" or device.type != "cpu":
+        return "torch"
+    if fused_kernel() is None:
+        if kernel == "fused":
+            raise RuntimeError(f"field.grid_kernel=fused, but the kernel could not be built ({_ext_error}); "
+                               "install g++ or set field.grid_kernel=torch")
+        return "torch"
+    return "fused"
+
+
+def encode(u: torch.Tensor, tables, kernel: str = "auto") -> torch.Tensor:
+    """Features of the L tables (each [R,R,R,C]) at u [N,3] in [-1,1] -> [N, L*C]."""
+    if resolve_kernel(kernel, u.device) == "fused":
+        res = tuple(int(t.shape[0]) for t in tables)
+        return _FusedEncoding.apply(u.contiguous().float(), res, *tables)
+    g = u.view(1, -1, 1, 1, 3)
+    feats = [F.grid_sample(t.permute(3, 0, 1, 2)[None], g, mode="bilinear", padding_mode="zeros",
+                           align_corners=True).view(t.shape[-1], -1) for t in tables]  # L x [C,N]
+    return torch.cat(feats, 0).T  # [N, L*C]
+
