@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Benchmark: ManifoldNeuS, its NeuS baselines and the pycolmap reference on one scene, in one sitting.
 
-    python bench/bench.py --scene scan24 [--scene S ...] [--systems manifoldneus,neus-barf,neus-colmap,pycolmap]
+    python bench/bench.py --scene scan24 [--scene S ...] [--systems manifoldneus,neus-barf,neus-colmap,sfm-all,pycolmap]
                           [--set section.key=value ...] [--until STAGE] [--force STAGE | --force-all]
                           [--artifacts DIR] [--out-dir DIR] [--executor dask|dask://HOST:PORT|slurm] [--workers N]
 
@@ -59,6 +59,7 @@ SYSTEMS = {s.key: s for s in (
     System("manifoldneus", "ManifoldNeuS", None, "evaluate"),
     System("neus-barf", "NeuS-BARF", "neus-barf", "evaluate"),
     System("neus-colmap", "NeuS-COLMAP", "neus-colmap", "evaluate"),
+    System("sfm-all", "SfM-all + NeuS", "sfm-all", "evaluate"),
     System(BASELINE, "pycolmap", None, "evaluate_poses"),
 )}
 

@@ -1,4 +1,4 @@
-"""The bench on the tiny synthetic scene: all four systems in one sitting, one JSON, one table with
+"""The bench on the tiny synthetic scene: all five systems in one sitting, one JSON, one table with
 ratio columns; and README's Results generated from that JSON, between the markers only."""
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from bench import bench, results_md
 
 POSE_ERRORS = ("rot_err_deg_mean", "rot_err_deg_median", "center_err_units_mean", "center_err_units_median",
                "pre_r_deg_mean", "pre_t_deg_mean")
-NEURAL_SYSTEMS = ("manifoldneus", "neus-barf", "neus-colmap")
+NEURAL_SYSTEMS = ("manifoldneus", "neus-barf", "neus-colmap", "sfm-all")
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +53,14 @@ def test_json_has_every_system_with_finite_pose_errors(tiny_bench):
     features = [systems[key]["stages"]["features"] for key in NEURAL_SYSTEMS]
     assert len({f["fingerprint"] for f in features}) == 1 and all(f["computed_this_sitting"] for f in features)
     assert "reference" in systems["neus-colmap"]["stages"] and "reference" not in systems["manifoldneus"]["stages"]
+    # sfm-all holds the mapper's poses of every training view: its final round is its initialisation
+    store = bench.pipeline.Store(tiny_bench[0].parent / "artifacts", "synthetic", "sfm-all")
+    ev = json.loads((store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json").read_text())
+    assert [r["label"] for r in ev["poses"]][:2] == ["initial", "anchors"]
+    first, last = ev["poses"][0]["summary"], ev["poses"][-1]["summary"]
+    for key in ("rot_err_deg", "center_err_units"):  # equal up to the float32 the trainer holds poses in
+        assert last[key]["mean"] == pytest.approx(first[key]["mean"], rel=1e-4), key
+    assert ev["poses"][-1]["n_views"] > 3 and last["rot_err_deg"]["mean"] > 0
     assert result["summary"]["front_end_over_pycolmap"] > 0
 
 
