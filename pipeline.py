@@ -690,6 +690,10 @@ def run(
     store = Store(artifacts, scene.name, preset)
     own = own_ingredients(stages, resolved, scene)
     selected = select(stages, until, only)
+    if any("run" in stages[name].sections for name in selected):  # before the front-end, not after it
+        problem = config.device_problem(resolved["run"].device)
+        if problem:
+            raise ParamError(f"run.device: {problem}")
     report = RunReport()
     intact: set[tuple[str, str]] = set()  # versions whose files were checked in this run
 

@@ -19,9 +19,10 @@ class ParamError(ValueError):
     """A parameter that is unknown, of the wrong type or out of range."""
 
 
-def param(default, help: str, *, lo=None, hi=None, choices=None):
-    """A dataclass field with documentation and validation metadata."""
-    meta = {"help": help, "lo": lo, "hi": hi, "choices": choices}
+def param(default, help: str, *, lo=None, hi=None, choices=None, check=None):
+    """A dataclass field with documentation and validation metadata. ``check(value)`` returns what is
+    wrong with a value (a sentence), or None."""
+    meta = {"help": help, "lo": lo, "hi": hi, "choices": choices, "check": check}
     if isinstance(default, (list, dict)):
         return field(default_factory=lambda: type(default)(default), metadata=meta)
     return field(default=default, metadata=meta)
@@ -109,6 +110,9 @@ def build(cls, section: str, values: dict | None):
                     raise ParamError(f"{key}: {item} is below the minimum {m['lo']}")
                 if m.get("hi") is not None and item > m["hi"]:
                     raise ParamError(f"{key}: {item} is above the maximum {m['hi']}")
+        problem = m["check"](v) if m.get("check") else None
+        if problem:
+            raise ParamError(f"{key}: {problem}")
         kwargs[name] = v
     return cls(**kwargs)
 
@@ -139,6 +143,27 @@ def parse_override(text: str) -> tuple[str, str, Any]:
     except yaml.YAMLError as e:
         raise ParamError(f"bad --set {text!r}: value is not valid YAML ({e})") from None
     return section, key, value
+
+
+def device_problem(device: str) -> str | None:
+    """What keeps torch from computing on ``device`` on this machine, or None. Checked when a run
+    starts (on the machine that runs it), not when parameters are read (a login node submitting to
+    GPU nodes has none)."""
+    import torch
+
+    try:
+        d = torch.device(device)
+    except RuntimeError:
+        return f"{device!r} is not a torch device (cpu, cuda or cuda:N)"
+    if d.type == "cpu":
+        return None
+    if d.type != "cuda":
+        return f"{device!r}: only cpu and cuda are supported"
+    if not torch.cuda.is_available():
+        return f"{device!r} is not available on this machine (torch {torch.__version__} sees no CUDA device); use cpu"
+    if d.index is not None and d.index >= torch.cuda.device_count():
+        return f"{device!r}: this machine has {torch.cuda.device_count()} CUDA device(s)"
+    return None
 
 
 @dataclasses.dataclass

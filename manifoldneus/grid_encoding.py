@@ -27,6 +27,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from manifoldneus import io
+
 log = logging.getLogger(__name__)
 
 KERNELS = ("auto", "fused", "torch")
@@ -37,8 +39,7 @@ _ext_error: str | None = None
 
 
 def _build_dir() -> Path:
-    root = Path(os.environ.get("MANIFOLDNEUS_CACHE", Path.home() / ".cache" / "manifoldneus"))
-    return root / f"grid_encoding-torch{torch.__version__.replace('+', '_')}"
+    return io.cache_root() / f"grid_encoding-torch{torch.__version__.replace('+', '_')}"
 
 
 def fused_kernel():

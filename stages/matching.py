@@ -49,7 +49,7 @@ import numpy as np
 
 from manifoldneus.cameras import pixels_to_normalised
 from manifoldneus.config import param
-from manifoldneus.io import load_arrays, load_json, save_arrays
+from manifoldneus.io import file_digest, load_arrays, load_json, save_arrays
 
 METHODS = {
     "magsac": "USAC_MAGSAC",
@@ -94,6 +94,14 @@ class Params:
 UPSTREAM = ("ingest", "features")
 SECTIONS = ("matching",)
 OUTPUTS = ("matches.zarr",)
+
+
+def input_signature(scene, p: Params) -> str | None:
+    """The pair list's content: a file named by a parameter, so an edit must reach the fingerprint."""
+    if p.pairs != "list" or not p.pair_list:
+        return None
+    path = Path(p.pair_list)
+    return file_digest(path) if path.is_file() else f"missing {path}"
 
 
 # --------------------------------------------------------------------------- plain functions

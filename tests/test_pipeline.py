@@ -154,11 +154,27 @@ def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_p
         ("anchors.perturb_rot_deg=[-1,3]", "anchors.perturb_rot_deg: -1.0 is below the minimum 0.0"),
         ("anchors.refine_intrinsics=[focal, skew]", r"anchors.refine_intrinsics: \['skew'\] not among"),
         ("reference.refine_intrinsics=[radial]", r"reference.refine_intrinsics: \['radial'\] not among"),
+        ("ingest.intrinsics=[0,500,96,96]", r"ingest.intrinsics: .* positive focal lengths"),
+        ("ingest.intrinsics=[500,-500,96,96]", r"ingest.intrinsics: .* positive focal lengths"),
+        ("ingest.intrinsics=[500,96,96]", r"ingest.intrinsics: .* is not \[fx, fy, cx, cy\]"),
     ],
 )
 def test_bad_set_is_a_clear_error(artifacts, override, message):
     with pytest.raises(ParamError, match=message):
         pipeline.run("synthetic", until="ingest", overrides=[override], artifacts=artifacts)
+
+
+def test_an_unavailable_device_stops_the_run_before_its_first_stage(artifacts, monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # as on this CPU machine
+    with pytest.raises(ParamError, match=r"run.device: 'cuda' is not available on this machine .* use cpu"):
+        pipeline.run("synthetic", until="anchors", overrides=["run.device=cuda"], artifacts=artifacts)
+    with pytest.raises(ParamError, match=r"run.device: 'gpu' is not a torch device"):
+        pipeline.run("synthetic", until="anchors", overrides=["run.device=gpu"], artifacts=artifacts)
+    assert not artifacts.exists()  # nothing computed, nothing created
+    # stages that never touch torch's device do not need it
+    assert pipeline.run("synthetic", until="ingest", overrides=["run.device=cuda"], artifacts=artifacts)
 
 
 def test_unknown_stage_and_profile(artifacts):
