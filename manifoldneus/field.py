@@ -81,7 +81,7 @@ def fourier_encode(x: torch.Tensor, n_bands: int, band_weights: torch.Tensor | N
         bw = band_weights.to(x.dtype)
         bw = bw[None, :, None] if bw.dim() == 1 else bw[:, :, None]
         enc = enc * bw
-    return torch.cat([x, enc.reshape(x.shape[0], -1)], -1)
+    return torch.cat([x, enc.reshape(x.shape[0], 2 * x.shape[1] * n_bands)], -1)  # explicit: N may be 0
 
 
 TETRA = torch.tensor([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]])

@@ -389,6 +389,18 @@ def test_a_large_pose_term_switching_on_is_not_a_divergence():
     assert tr.step == 30 and tr.rollbacks == 0 and tr.history[-1]["loss"] > 1e3
 
 
+def test_no_sample_to_colour_is_not_an_error():
+    """A chunk of a rendered image where no section is heavy enough for the colour network (the
+    background of a held-out view) hands it zero samples."""
+    f = make_field(FieldParams())
+    none = torch.zeros(0, 3)
+    assert f._color(none, none, torch.zeros(0, f.p.feature_dim + f.p.grid_levels * f.p.grid_channels), None).shape == (0, 3)
+    rp = RenderParams(colour_min_weight=2.0)  # no section ever reaches it
+    out = render_rays(f, torch.tensor([[0.0, 0.0, -3.0]]).repeat(4, 1), torch.tensor([[0.0, 0.0, 1.0]]).repeat(4, 1), rp,
+                      background=Background("black"))
+    assert out["rgb"].shape == (4, 3) and float(out["rgb"].detach().abs().max()) == 0.0
+
+
 def test_band_weights_interface():
     for kind in ("grid", "mlp"):
         fp = FieldParams(kind=kind, mlp_width=128, mlp_depth=4, mlp_skip=-1, color_width=16, color_depth=1,
