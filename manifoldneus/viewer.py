@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import base64
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -200,14 +201,16 @@ def build_page(data: dict, title: str) -> str:
 
     imports = {"three": _module_url((ASSETS / "three.module.min.js").read_text()),
                "three/addons/controls/OrbitControls.js": _module_url((ASSETS / "OrbitControls.js").read_text())}
-    # "</" would end the <script> element that holds the JSON
-    data_json = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
-    page = (ASSETS / "viewer.html").read_text()
-    for key, value in (("TITLE", html.escape(title)), ("IMPORTMAP", json.dumps({"imports": imports})),
-                       ("DATA", data_json), ("APP", (ASSETS / "viewer.js").read_text()),
-                       ("LICENSE", html.escape((ASSETS / "LICENSE-three.txt").read_text()))):
-        page = page.replace("{{" + key + "}}", value, 1)
-    return page
+    # inside a <script> element "</script" ends it and "<!--<script" changes how it is parsed: the
+    # JSON carries no "<" (nor ">", "&") at all, as \u003c-style escapes that JSON.parse reads back
+    data_json = json.dumps(data, separators=(",", ":"))
+    data_json = data_json.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+    values = {"TITLE": html.escape(title), "IMPORTMAP": json.dumps({"imports": imports}), "DATA": data_json,
+              "APP": (ASSETS / "viewer.js").read_text(),
+              "LICENSE": html.escape((ASSETS / "LICENSE-three.txt").read_text())}
+    # one pass over the template: a name holding "{{APP}}" is data, never a place to fill
+    return re.sub(r"\{\{(" + "|".join(values) + r")\}\}", lambda m: values[m.group(1)],
+                  (ASSETS / "viewer.html").read_text())
 
 
 def write_page(versions: dict[str, Path], path: Path, title: str, max_faces: int = MAX_FACES) -> dict:

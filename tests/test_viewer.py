@@ -1,5 +1,6 @@
 """The viewer page (manifoldneus/viewer.py, `pipeline.py view`): its geometry helpers, its data
 against the tiny run's artifacts, and the page rendered in headless Chromium."""
+import html
 import json
 import re
 
@@ -107,3 +108,30 @@ def test_the_page_renders_in_headless_chromium(page, tmp_path):
     background = np.array([0x1E, 0x21, 0x27])
     drawn = (np.abs(centre - background).max(-1) > 16).mean()
     assert drawn > 0.5, f"only {drawn:.0%} of the centre is drawn"
+
+
+HOSTILE = ["{{APP}}", "<!--<script>", "{{IMPORTMAP}}", "</script><b>", "a&b \"q\""]
+
+
+def test_names_that_look_like_the_template_or_html_stay_data(page, tmp_path):
+    """Photos named like the template's placeholders or like HTML leave the page whole: filled in
+    one pass, the JSON without '<'; in Chromium (when there is one) the page still gets ready."""
+    path, run = page
+    data, _ = page_data(path)
+    for i, camera in enumerate(data["cameras"]):
+        camera["name"] = HOSTILE[i % len(HOSTILE)]
+    title = "{{IMPORTMAP}} <!--<script> {{DATA}}"
+    text = viewer.build_page(data, title)
+    app = (viewer.ASSETS / "viewer.js").read_text()
+    assert text.count(app) == 1 and text.count("<script type=\"importmap\">{\"imports\"") == 1
+    hostile = tmp_path / "hostile.html"
+    hostile.write_text(text)
+    again, _ = page_data(hostile)
+    assert [c["name"] for c in again["cameras"]] == [c["name"] for c in data["cameras"]]
+    assert f"<title>{html.escape(title)}</title>" in text
+    if viewer.find_browser() is None:
+        pytest.skip("no Chromium on this machine (bash .ci/run installs the Debian package chromium)")
+    shown = viewer.render_in_browser(hostile, tmp_path / "hostile.png", size=(800, 600))
+    assert "errors" not in shown["attributes"], shown["attributes"]["errors"]
+    assert shown["attributes"]["viewer-state"] == "ready"
+    assert int(shown["attributes"]["cameras-drawn"]) == run["optimised"]
