@@ -756,6 +756,9 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
                      + (f"{seconds:8.1f} s" if how == "computed" else ""))
     ran = sum(how == "computed" for how in report.values())
     out = [f"{store.scene_dir.name}: {len(report)} stages, {ran} ran ({total:.0f} s), {len(report) - ran} cached", *lines]
+    if "successors" in report:
+        out += posed_lines(store.version_dir("successors", version["successors"]),
+                           store.version_dir("schedule", version["schedule"]))
     if "evaluate" in report:
         ev = json.loads((store.version_dir("evaluate", version["evaluate"]) / "evaluation.json").read_text())
         if ev.get("poses"):
@@ -789,6 +792,24 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
     if "evaluate" in report:
         out.append(f"report:  make report SCENE={scene_name}")
     return "\n".join(out)
+
+
+def posed_lines(successors_dir: Path, schedule_dir: Path) -> list[str]:
+    """How many of the views meant to get a pose got one; a warning naming those that did not."""
+    from manifoldneus import io
+
+    schedule = io.load_json(schedule_dir / "schedule.json")
+    placed = io.load_arrays(successors_dir / "final" / "poses.zarr", ["placed"])["placed"].astype(bool)
+    held = set(schedule["held_out_views"])
+    meant = [v for v in schedule["views"] if v["view"] not in held]  # those outside the largest component too
+    missing = [v["name"] for v in meant if not placed[v["view"]]]
+    line = f"posed:   {len(meant) - len(missing)} of {len(meant)} views" + (
+        f" ({len(held)} more held out for evaluation)" if held else "")
+    if not missing:
+        return [line]
+    return [line, f"WARNING: {len(missing)} view(s) got no pose: {', '.join(missing[:8])}"
+                  f"{' ...' if len(missing) > 8 else ''} (too few verified matches to the posed views: covisibility.png "
+                  f"and the schedule stage's log show which)"]
 
 
 def camera_line(intrinsics: dict) -> str:

@@ -21,12 +21,14 @@ Outputs:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from manifoldneus import io, mavos
 from manifoldneus.config import holdout_mask, param
+from manifoldneus.scenes import SceneError
 
 
 @dataclass
@@ -127,6 +129,9 @@ def plot_schedule(sched: mavos.Schedule, phi: np.ndarray, W: np.ndarray, path, t
     io.save_figure(path, fig)
 
 
+MIN_ANCHORS = 2  # the anchors' initialisation from matches needs a pair
+
+
 def run(ctx) -> None:
     p = ctx.params
     names = io.load_json(ctx.input("ingest") / "views.json")["names"]
@@ -147,6 +152,15 @@ def run(ctx) -> None:
     )
     excluded = np.flatnonzero(~in_comp | held_out).tolist()
     outside = np.flatnonzero(~in_comp).tolist()
+    if len(sched.anchors) < MIN_ANCHORS:  # said here, before any training, not when the anchors start
+        n_sched = int((in_comp & ~held_out).sum())
+        need = math.ceil(100.0 * MIN_ANCHORS / n_sched) if n_sched >= MIN_ANCHORS else None
+        raise SceneError(
+            f"{ctx.scene}: {len(sched.anchors)} anchor view(s) of {n_sched} schedulable ({N} views, {int(held_out.sum())} "
+            f"held out by split.holdout_every={ctx.section('split').holdout_every}, {len(outside)} outside the "
+            f"largest co-visibility component); the anchors' initialisation needs at least {MIN_ANCHORS}: "
+            + (f"--set schedule.anchor_percent={need}" if need and need <= 100 else "add photos")
+            + (" or --set split.holdout_every=0" if held_out.any() else ""))
     if outside:
         ctx.log.warning("views %s are outside the largest co-visibility component: not scheduled (role 'excluded'); "
                         "later stages must skip them", [names[i] for i in outside])

@@ -56,6 +56,23 @@ def test_rounds_and_evaluation(tiny_run):
     assert ev["placement"]["rot_err_deg"]["mean"] > 0  # the final views at the poses they were placed with
 
 
+def artifacts_round(artifacts, report, stage):
+    from manifoldneus import artifacts as rounds
+
+    return rounds.load_round(artifacts / "synthetic" / stage / report.fingerprints[stage] / "final")
+
+
+def test_a_view_without_a_pose_is_named_in_the_summary(tmp_path):
+    schedule, successors = tmp_path / "schedule", tmp_path / "successors"
+    schedule.mkdir()
+    io.save_json(schedule / "schedule.json", {"held_out_views": [0], "views": [
+        {"view": i, "name": f"IMG_{i}", "role": r} for i, r in enumerate(["excluded", "anchor", "round1", "excluded"])]})
+    io.save_arrays(successors / "final" / "poses.zarr", {"placed": np.array([False, True, False, False])})
+    lines = pipeline.posed_lines(successors, schedule)
+    assert lines[0] == "posed:   1 of 3 views (1 more held out for evaluation)"
+    assert lines[1].startswith("WARNING: 2 view(s) got no pose: IMG_2, IMG_3 (")
+
+
 def test_the_summary_says_what_the_run_found_and_where(tiny_run):
     artifacts, report = tiny_run
     text = pipeline.run_summary("synthetic", report, artifacts)
@@ -67,6 +84,13 @@ def test_the_summary_says_what_the_run_found_and_where(tiny_run):
            "0.00 % off" in text  # calibrated: nothing estimated
     mesh = next(line for line in text.splitlines() if line.startswith("mesh:"))
     assert Path(mesh.split(maxsplit=1)[1]).is_file()
+    final = artifacts_round(artifacts, report, "successors")
+    held = io.load_json(artifacts / "synthetic" / "schedule" / report.fingerprints["schedule"] / "schedule.json")[
+        "held_out_views"]
+    meant = [v for v in range(len(final["placed"])) if v not in held]
+    posed = int(final["placed"][meant].sum())
+    assert f"posed:   {posed} of {len(meant)} views ({len(held)} more held out for evaluation)" in text
+    assert ("WARNING" in text) == (posed < len(meant))
     # a self-calibrated camera says where it started
     intr = {"source": "default", "start": {"focal_px": 960.0, "principal_point_px": [400.0, 300.0]},
             "final": {"focal_px": 1436.4, "principal_point_px": [411.9, 313.0], "focal_err_pct": 0.52},

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 
 import numpy as np
 import pytest
@@ -228,6 +229,18 @@ def test_too_few_views_stop_at_ingest(tmp_path, tiny_synthetic, artifacts):
         io.save_png(folder / f"v{i}.png", tiny_synthetic.images[i])
     with pytest.raises(SceneError, match="2 view\\(s\\); pose-free reconstruction needs at least 3"):
         pipeline.run(str(folder), until="ingest", artifacts=artifacts)
+
+
+def test_too_few_anchors_are_said_at_the_schedule_before_any_training(artifacts):
+    over = ["ingest.synthetic_views=12", "ingest.synthetic_resolution=96", "ingest.synthetic_surface_points=2000",
+            "schedule.anchor_percent=10"]
+    with pytest.raises(SceneError, match=r"1 anchor view\(s\) of \d+ schedulable \(12 views, 2 held out by "
+                                         r"split.holdout_every=8, \d+ outside .* needs at least 2: --set "
+                                         r"schedule.anchor_percent=\d+ or --set split.holdout_every=0") as e:
+        pipeline.run("synthetic", until="anchors", overrides=over, artifacts=artifacts)
+    assert not list((artifacts / "synthetic").glob("anchors/*"))
+    hint = re.search(r"schedule.anchor_percent=\d+", str(e.value)).group(0)
+    pipeline.run("synthetic", until="schedule", overrides=[*over, hint], artifacts=artifacts)  # the hint works
 
 
 def test_neus_layout_with_an_images_folder(idr_folder, tiny_synthetic):
