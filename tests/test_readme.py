@@ -1,0 +1,94 @@
+"""README.md is a short user's guide whose figures come from the bench JSON (issue 33).
+
+- at most 250 lines;
+- its generated parts (results block, headline) equal what `make results` writes from bench/*.json;
+- outside the generated parts no word looks like a commit hash, and no word anywhere names a commit;
+- every relative link and every docs/ path it names is a file in the repository.
+"""
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from bench import bench, results_md
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+MAX_LINES = 250
+HEX_WORD = re.compile(r"\b[0-9a-f]{7,40}\b")
+
+
+def readme() -> str:
+    return README.read_text(encoding="utf-8")
+
+
+def outside_generated(text: str) -> str:
+    """`text` without what lies between the generated blocks' markers."""
+    for begin, end in ((results_md.BEGIN, results_md.END), (results_md.HEADLINE_BEGIN, results_md.HEADLINE_END)):
+        start, stop = text.find(begin), text.find(end)
+        if start >= 0 and stop > start:
+            text = text[:start] + text[stop + len(end):]
+    return text
+
+
+def test_readme_has_at_most_250_lines():
+    n = len(readme().splitlines())
+    assert n <= MAX_LINES, f"README.md has {n} lines (at most {MAX_LINES}): move detail to docs/"
+
+
+def test_results_block_is_what_make_results_writes():
+    text = readme()
+    block = results_md.between_markers(text)
+    assert block is not None, f"README.md needs {results_md.BEGIN} ... {results_md.END}"
+    expected = results_md.results_markdown(bench.DEFAULT_OUT_DIR).strip()
+    assert block == expected, "README's results block is not what the bench JSON gives: run `make results`"
+
+
+def test_headline_is_what_make_results_writes():
+    text = readme()
+    head = results_md.between_markers(text, results_md.HEADLINE_BEGIN, results_md.HEADLINE_END)
+    assert head is not None, "README.md's headline result is generated: it needs the headline markers"
+    assert head == results_md.headline_markdown(bench.DEFAULT_OUT_DIR).strip(), "run `make results`"
+    # and the whole file is a fixed point of `make results`
+    assert results_md.render_readme(text, bench.DEFAULT_OUT_DIR) == text
+
+
+def test_no_commit_hash_in_readme():
+    text = readme()
+    outside = HEX_WORD.findall(outside_generated(text))
+    # pure digits (a year, a count) are numbers, not hashes
+    suspects = [w for w in outside if not w.isdigit()]
+    assert not suspects, f"README names what look like commit hashes outside its generated parts: {suspects}"
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("no git checkout to resolve words against")
+    commits = [w for w in set(HEX_WORD.findall(text))
+               if subprocess.run(["git", "cat-file", "-e", f"{w}^{{commit}}"], cwd=ROOT,
+                                 capture_output=True).returncode == 0]
+    assert not commits, f"README names commits {commits}: history belongs in docs/CHANGELOG.md"
+
+
+def anchors(markdown: str) -> set[str]:
+    """GitHub's anchors of a markdown file's headings (lower case, punctuation dropped, spaces -> '-')."""
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+            for h in re.findall(r"^#+ (.+)$", markdown, flags=re.M)}
+
+
+def test_relative_links_and_docs_paths_exist():
+    text = readme()
+    links = []
+    for target in re.findall(r"\]\(([^)\s]+)\)", text):  # [text](target) and ![alt](target)
+        if re.match(r"^[a-z][a-z0-9+.-]*:", target):
+            continue  # http:, mailto:
+        path, _, fragment = target.partition("#")
+        links.append((path, fragment))
+    links += [(p, "") for p in re.findall(r"(?<![\w/.])(docs/[\w./-]+\.(?:md|png))", text)]
+    assert any(p for p, _ in links), "README links no docs at all?"
+    missing = sorted({p for p, _ in links if p and not (ROOT / p).is_file()})
+    assert not missing, f"README links files that do not exist: {missing}"
+    bad = sorted({f"{p}#{f}" for p, f in links
+                  if f and f not in anchors(text if not p else (ROOT / p).read_text(encoding="utf-8"))})
+    assert not bad, f"README links anchors with no heading: {bad}"
