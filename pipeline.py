@@ -37,6 +37,7 @@ import json
 import logging
 import os
 import re
+import shlex
 import shutil
 import signal
 import socket
@@ -138,13 +139,15 @@ def read_params_file(path: Path) -> dict:
     ParamError that names the file (and the line, for YAML syntax)."""
     if not path.is_file():
         raise ParamError(f"parameter file {path} not found (the project's own is {DEFAULT_PARAMS})")
+    text = path.read_text()
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.safe_load(text)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"{path}, line {mark.line + 1}" if mark is not None else str(path)
-        raise ParamError(f"{where}: not valid YAML ({getattr(e, 'problem', None) or e}); "
-                         "indent with spaces, not tabs") from None
+        near = text.splitlines()[max(mark.line - 1, 0):mark.line + 1] if mark is not None else text.splitlines()
+        tabs = "; indent with spaces, not tabs" if any("\t" in line for line in near) else ""
+        raise ParamError(f"{where}: not valid YAML ({getattr(e, 'problem', None) or e}){tabs}") from None
     if raw is None:
         raise ParamError(f"{path} is empty: it needs at least the `profiles` section (see {DEFAULT_PARAMS})")
     _expect_mapping(raw, f"{path}: the top level")
@@ -642,12 +645,33 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
     return final
 
 
-def _refuse_damaged(store: Store, stage: str, fingerprint: str, scene_name: str) -> None:
+def cli_hint(command: str, scene_name: str, *words: str, artifacts: Path = DEFAULT_ARTIFACTS, data_root=None,
+             params_path: Path = DEFAULT_PARAMS, profile=None, preset=None, overrides=()) -> str:
+    """A command to print as advice: shell-quoted, with the options that select this run's artifacts,
+    data and parameters (so that pasting it acts on the same versions)."""
+    args = ["python", "pipeline.py", command, "--scene", scene_name]
+    if Path(artifacts).resolve() != DEFAULT_ARTIFACTS.resolve():
+        args += ["--artifacts", str(artifacts)]
+    if data_root is not None:
+        args += ["--data-root", str(data_root)]
+    if command == "run":
+        if Path(params_path).resolve() != DEFAULT_PARAMS.resolve():
+            args += ["--params", str(params_path)]
+        if profile:
+            args += ["--profile", profile]
+        for override in overrides:
+            args += ["--set", override]
+    if preset:
+        args += ["--preset", preset]
+    return shlex.join([*args, *words])
+
+
+def _refuse_damaged(store: Store, stage: str, fingerprint: str, rebuild: str) -> None:
+    """``rebuild``: the command that recomputes it (:func:`cli_hint`)."""
     problems = store.damage(stage, fingerprint)
     if problems:
         raise PipelineError(f"{stage} version {fingerprint} is damaged ({problems[0]}"
-                            f"{f', and {len(problems) - 1} more' if len(problems) > 1 else ''}); rebuild it: "
-                            f"python pipeline.py run --scene {scene_name} --until {stage} --force {stage}")
+                            f"{f', and {len(problems) - 1} more' if len(problems) > 1 else ''}); rebuild it: {rebuild}")
 
 
 def select(stages: dict[str, Stage], until: str | None, only: str | list[str] | None) -> list[str]:
@@ -697,9 +721,13 @@ def run(
     report = RunReport()
     intact: set[tuple[str, str]] = set()  # versions whose files were checked in this run
 
+    def hint(*words: str) -> str:
+        return cli_hint("run", scene_name, *words, artifacts=artifacts, data_root=data_root, params_path=params_path,
+                        profile=profile, preset=preset, overrides=overrides)
+
     def refuse_damaged(stage: str, fingerprint: str) -> None:
         if (stage, fingerprint) not in intact:
-            _refuse_damaged(store, stage, fingerprint, scene_name)
+            _refuse_damaged(store, stage, fingerprint, hint("--until", stage, "--force", stage))
             intact.add((stage, fingerprint))
 
     def needs_computing(name: str, fp: str) -> bool:
@@ -715,7 +743,7 @@ def run(
                     if up not in selected and not store.is_complete(up, fps[up]["fingerprint"]):
                         raise PipelineError(
                             f"stage {name} needs {up} with the current parameters, which has not been computed; "
-                            f"run: python pipeline.py run --scene {scene_name} --until {name}"
+                            f"run: {hint('--until', name)}"
                         )
                     refuse_damaged(up, fps[up]["fingerprint"])
                 if needs_computing(name, fp):
@@ -956,9 +984,10 @@ def view(scene_name: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=No
     if not versions:
         for_preset = f" --preset {preset}" if preset else ""
         raise PipelineError(f"scene {scene.name}{for_preset} has no exported result to view in {Path(artifacts)}; "
-                            f"run: python pipeline.py run --scene {scene_name}{for_preset}")
+                            f"run: {cli_hint('run', scene_name, artifacts=artifacts, data_root=data_root, preset=preset)}")
     for stage, folder in versions.items():
-        _refuse_damaged(store, stage, folder.name, scene_name)
+        _refuse_damaged(store, stage, folder.name, cli_hint("run", scene_name, "--until", stage, "--force", stage,
+                                                            artifacts=artifacts, data_root=data_root, preset=preset))
     path = Path(out) if out else store.scene_dir / "viewer" / ("viewer.html" if preset is None else f"viewer@{preset}.html")
     title = scene.name + (f" ({preset})" if preset else "")
     return path, viewer.write_page(versions, path, title, max_faces or viewer.MAX_FACES)
@@ -1212,7 +1241,9 @@ def _command(args) -> int:
                 print(f"    {problem}")
         damaged = [n for n, (state, _) in results.items() if state == "DAMAGED"]
         if damaged:
-            print(f"rebuild: python pipeline.py run --scene {args.scene} --force {' --force '.join(damaged)}")
+            forced = [w for name in damaged for w in ("--force", name)]
+            print("rebuild: " + cli_hint("run", args.scene, *forced, artifacts=args.artifacts, data_root=args.data_root,
+                                         preset=args.preset))
             return 1
     elif args.command == "view":
         path, held = view(args.scene, args.artifacts, args.data_root, args.preset, args.out, args.max_faces)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,6 +74,10 @@ def resolve_scene(name: str, data_root: Path | None = None) -> SceneRef:
     for c in candidates:
         if c.is_dir():
             return SceneRef(name=folder_scene_name(c.resolve(), root), kind="folder", path=c.resolve())
+    if Path(name).is_file():
+        what = "an image" if Path(name).suffix.lower() in IMAGE_EXTENSIONS else "a file"
+        raise SceneError(f"--scene {name} is {what}, not a folder: a scene is the folder that holds the photos; "
+                         f"use --scene {shlex.quote(str(Path(name).parent))}")
     if not root.is_dir():
         raise SceneError(f"data root {root} does not exist (scene {name!r}). {HOW_TO_GET_DTU}")
     raise SceneError(

@@ -163,6 +163,11 @@ def test_missing_scene_lists_each_place_once(tmp_path):
     assert looked_in.count(str(missing)) == 1
 
 
+def test_a_scene_naming_a_photo_points_at_its_folder(plain_folder):
+    with pytest.raises(SceneError, match=rf"is an image, not a folder: .* use --scene {re.escape(str(plain_folder))}$"):
+        resolve_scene(str(plain_folder / "IMG_0001.png"))
+
+
 def _jpeg(path, image, orientation=None):
     from PIL import Image
 

@@ -320,8 +320,8 @@ def test_a_damaged_version_is_named_and_never_read(capsys, artifacts):
     state, reasons = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"]
     assert state == "damaged" and f"{chunks[-1]}: missing" in reasons
     with pytest.raises(pipeline.PipelineError, match=r"ingest version \w+ is damaged \(.*: missing\); rebuild it: "
-                                                     r"python pipeline.py run --scene synthetic --until ingest "
-                                                     r"--force ingest"):
+                                                     r"python pipeline.py run --scene synthetic --artifacts \S+ "
+                                                     r"(--set \S+ )+--until ingest --force ingest"):
         pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
     with pytest.raises(pipeline.PipelineError, match="ingest version .* is damaged"):  # read as another's upstream
         pipeline.run("synthetic", only="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
@@ -448,6 +448,28 @@ def test_a_bad_params_file_is_named_with_its_line(tmp_path, artifacts, capsys, t
     assert err.count("\n") == 1 and err.startswith("error: ")
     import re
     assert re.search(message, err), err
+    assert ("tabs" in err) == ("\t" in text)  # the hint about tabs only when a tab is the cause
+
+
+def test_printed_commands_are_quoted_and_keep_the_runs_options(tmp_path, artifacts):
+    """A hint pasted back acts on the same versions: --artifacts, --data-root, --set and the scene,
+    shell-quoted (a folder with a space, a value with brackets)."""
+    import shlex
+
+    folder = tmp_path / "my photos"
+    hint = pipeline.cli_hint("run", str(folder), "--until", "anchors", artifacts=artifacts, data_root=tmp_path,
+                             overrides=["ingest.intrinsics=[500, 500, 96, 96]"], preset="neus-barf")
+    words = shlex.split(hint)
+    assert words[:3] == ["python", "pipeline.py", "run"]
+    assert words[words.index("--scene") + 1] == str(folder) and words[words.index("--artifacts") + 1] == str(artifacts)
+    assert words[words.index("--set") + 1] == "ingest.intrinsics=[500, 500, 96, 96]"
+    assert words[words.index("--data-root") + 1] == str(tmp_path) and words[-2:] == ["--until", "anchors"]
+    assert "--artifacts" not in pipeline.cli_hint("run", "scan24")  # the defaults are not repeated
+    # the hint of a run whose upstream is missing carries the run's own options
+    with pytest.raises(pipeline.PipelineError) as e:
+        pipeline.run("synthetic", only="features", overrides=["ingest.downscale=2"], artifacts=artifacts)
+    pasted = shlex.split(str(e.value).split("run: ", 1)[1])
+    assert "ingest.downscale=2" in pasted and str(artifacts) in pasted
 
 
 def test_a_missing_params_file_says_so(tmp_path, artifacts, capsys):
