@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import ast
 import contextlib
+import errno
 import fcntl
 import hashlib
 import importlib
@@ -584,8 +585,11 @@ def _stage_logger(stage: str, path: Path) -> tuple[logging.Logger, list[logging.
 
 def _detach(handlers: list[logging.Handler]) -> None:
     for h in handlers:
-        h.close()
         logging.getLogger("manifoldneus").removeHandler(h)
+        try:
+            h.close()
+        except OSError:  # a log that cannot be flushed (a full disk) must not hide the stage's own error
+            pass
 
 
 def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Path:
@@ -1163,6 +1167,8 @@ def main(argv: list[str] | None = None) -> int:
     """The CLI: every expected failure is one `error:` line and exit code 2 (130 for Ctrl-C);
     ``--debug`` re-raises it with its traceback."""
     args = _parser().parse_args(argv)
+    # a log file that cannot be written (a full disk) must not print logging's own tracebacks
+    logging.raiseExceptions = bool(args.debug)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _raise_terminated)
     try:
@@ -1190,6 +1196,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         stage, log_path = getattr(e, "stage_failed", (None, None))
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            print(f"error: {f'stage {stage}: ' if stage else ''}no space left on the disk writing "
+                  f"{e.filename or '?'}; nothing was published"
+                  f"{f' (what it had written: {log_path.parent})' if log_path else ''}. Free space (python pipeline.py "
+                  f"gc drops versions no pointer uses) or run with --artifacts DIR on a larger disk, then the same "
+                  f"command again", file=sys.stderr)
+            return 2
         where = f"stage {stage} failed: " if stage else ""
         hint = f" (traceback in {log_path}; --debug prints it here)" if log_path else " (--debug prints the traceback)"
         print(f"error: {where}{type(e).__name__}: {e}{hint}", file=sys.stderr)

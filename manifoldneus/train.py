@@ -27,9 +27,11 @@ size, and two runs of one seed drift apart (scan24_idr's masked anchors, 2 threa
 from __future__ import annotations
 
 import copy
+import errno
 import logging
 import math
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field as dc_field
 from pathlib import Path
@@ -400,7 +402,14 @@ class Trainer:
         then a rename), so a kill while writing leaves the previous checkpoint, never a truncated one."""
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        torch.save(self.state_dict(), str(tmp))
+        try:
+            torch.save(self.state_dict(), str(tmp))
+        except BaseException as e:
+            tmp.unlink(missing_ok=True)  # a partial checkpoint is only lost space (on a full disk, the most)
+            if isinstance(e, RuntimeError) and shutil.disk_usage(tmp.parent).free < (64 << 20):
+                # torch reports a full disk as "PytorchStreamWriter failed writing file ..."
+                raise OSError(errno.ENOSPC, "No space left on device", str(path)) from e
+            raise
         os.replace(tmp, path)
 
     def load(self, path) -> None:

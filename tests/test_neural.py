@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -573,3 +574,27 @@ def test_pose_corrections_own_which_views_learn_and_from_when():
     cams.reset()
     assert torch.equal(cams.poses(10), w2c)
     assert not PoseCorrections(w2c).learning and PoseCorrections(w2c).poses(10) is w2c
+
+
+def test_a_checkpoint_that_does_not_fit_leaves_the_previous_one(tmp_path, monkeypatch):
+    """torch.save on a full disk: the partial file is removed, the previous checkpoint stays, and the
+    error is an ENOSPC naming the checkpoint (the CLI's one line says so)."""
+    import errno
+    import shutil
+
+    fp, rp, tp, run = tiny_params(2)
+    tr = Trainer(synthetic_views(), fp, rp, LossParams(), tp, run=run)
+    path = tmp_path / "round_0.pt"
+    tr.save(path)
+    before = path.read_bytes()
+
+    def partial(obj, f):
+        Path(f).write_bytes(b"\0" * 1000)
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . PytorchStreamWriter failed writing file")
+
+    monkeypatch.setattr(torch, "save", partial)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10 << 30, 10 << 30, 0))
+    with pytest.raises(OSError) as e:
+        tr.save(path)
+    assert e.value.errno == errno.ENOSPC and e.value.filename == str(path)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["round_0.pt"]

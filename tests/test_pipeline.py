@@ -524,3 +524,32 @@ def test_a_run_ends_with_a_summary_and_colmap_logs_only_to_log_txt(artifacts, ca
     assert "feature_extraction" not in err + out  # ...not on the console
     assert pipeline.main([*args, "--until", "ground_truth"]) == 0
     assert "synthetic: 2 stages, 0 ran (0 s), 2 cached" in capfd.readouterr().out
+
+
+def test_a_full_disk_is_one_line_naming_stage_and_file(artifacts, monkeypatch, capsys):
+    """ENOSPC in a stage (its log unwritable too): one error line with the stage and the path, the
+    partial version kept aside as .failed-* as for every failure, no .tmp-* left."""
+    import errno
+    import logging
+
+    import stages.ingest as ingest
+
+    def full(ctx):
+        ctx.log.info("writing")
+        monkeypatch.setattr(logging.StreamHandler, "flush", lambda self: (_ for _ in ()).throw(
+            OSError(errno.ENOSPC, "No space left on device")))  # the stage's log.txt cannot be written either
+        raise OSError(errno.ENOSPC, "No space left on device", str(ctx.out / "views.zarr"))
+
+    monkeypatch.setattr(ingest, "run", full)
+    argv = ["run", "--scene", "synthetic", "--until", "ingest", "--artifacts", str(artifacts)]
+    argv += [w for o in FAST_SYNTH for w in ("--set", o)]
+    assert pipeline.main(argv) == 2
+    monkeypatch.undo()
+    printed = capsys.readouterr().err
+    assert "Traceback" not in printed and "Logging error" not in printed
+    err = [line for line in printed.splitlines() if not line.startswith("[ingest] running")]
+    assert len(err) == 1 and err[0].startswith("error: stage ingest: no space left on the disk writing ")
+    assert "views.zarr" in err[0] and "--artifacts DIR" in err[0]
+    stage_dir = artifacts / "synthetic" / "ingest"
+    assert [p.name.startswith(".failed-") for p in stage_dir.iterdir()] == [True]
+
