@@ -431,6 +431,39 @@ class Store:
             todo.extend(self.manifest(name, fp).get("upstream", {}).items())
         return out
 
+    # A run's record: the versions it has started or finished, written as it goes. A run killed
+    # before its pointers move (SIGKILL, a lost node) leaves it, so that gc keeps what running the
+    # same command again resumes from (its finished versions and its checkpoints).
+    def record_run(self, versions: dict[str, str]) -> None:
+        path = self.scene_dir / ".runs" / f"{_process()}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text(json.dumps({"pointer": self.pointer, "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                                   "versions": versions}))
+        os.replace(tmp, path)
+
+    def end_run(self, superseded: bool) -> None:
+        """Drop this run's record; with ``superseded`` (it ended normally) also the records that
+        interrupted runs of the same pointer left (this one has done what they would resume)."""
+        runs = self.scene_dir / ".runs"
+        (runs / f"{_process()}.json").unlink(missing_ok=True)
+        for path, record in self.interrupted_runs():
+            if superseded and record.get("pointer") == self.pointer:
+                path.unlink(missing_ok=True)
+
+    def interrupted_runs(self) -> list[tuple[Path, dict]]:
+        """(path, record) of the runs that ended without removing their record (killed)."""
+        out = []
+        for path in sorted((self.scene_dir / ".runs").glob("*.json")):
+            host, _, pid = path.stem.rpartition("-")
+            if _process_alive(host, pid):
+                continue
+            try:
+                out.append((path, json.loads(path.read_text())))
+            except (OSError, ValueError):
+                path.unlink(missing_ok=True)  # half-written: its run was killed while writing it
+        return out
+
     # Locks are flock(2) on files in the artifacts tree, so they hold across processes and, on a
     # shared filesystem that supports them (README: "Running on a cluster"), across hosts.
     def lock(self):
@@ -737,12 +770,15 @@ def run(
     def needs_computing(name: str, fp: str) -> bool:
         return name in force or not store.is_complete(name, fp)
 
+    started: dict[str, str] = {}
     with store.in_use():
         try:
             for name in selected:
                 stage = stages[name]
                 fps = chain_fingerprints(stages, own, store)  # upstream stages just run enter by their content
                 fp = fps[name]["fingerprint"]
+                started[name] = fp
+                store.record_run(started)
                 for up in stage.upstream:
                     if up not in selected and not store.is_complete(up, fps[up]["fingerprint"]):
                         raise PipelineError(
@@ -764,10 +800,16 @@ def run(
                     report[name] = "reused"
                     print(f"[{name}] up to date ({fp})", file=sys.stderr)
                 report.fingerprints[name] = fp
+        except BaseException:
+            ended_normally = False
+            raise
+        else:
+            ended_normally = True
         finally:  # also after a failure: the stages done so far are current
             with store.moving_pointers():
                 for name, fp in report.fingerprints.items():
                     store.set_current(name, fp)
+            store.end_run(superseded=ended_normally)
     return report
 
 
@@ -1030,10 +1072,13 @@ def _process_alive(host: str | None, pid: str | None) -> bool:
 
 
 def _stage_folders(scene_dir: Path, stage_names) -> list[Path]:
-    """The scene folder's stage folders that hold at least one version of ours (real folders only)."""
-    return sorted(d for d in scene_dir.iterdir()
-                  if d.name in stage_names and d.is_dir() and not d.is_symlink()
-                  and any(_our_version(d, v) for v in d.iterdir()))
+    """The scene folder's stage folders (real folders only) that hold a version of ours or, when
+    another one does (the scene is ours), the leftovers of our runs only (a killed run's checkpoint)."""
+    folders = [d for d in sorted(scene_dir.iterdir()) if d.name in stage_names and d.is_dir() and not d.is_symlink()]
+    versions = [d for d in folders if any(_our_version(d, v) for v in d.iterdir())]
+    if not versions:
+        return []
+    return [d for d in folders if d in versions or any(_LEFTOVER_NAME.fullmatch(v.name) for v in d.iterdir())]
 
 
 def gc_scene_dirs(artifacts: Path, scene_name: str | None = None, data_root=None) -> dict[Path, list[Path]]:
@@ -1060,11 +1105,13 @@ def gc_scene_dirs(artifacts: Path, scene_name: str | None = None, data_root=None
 
 
 def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None, data_root=None,
-       dry_run: bool = False) -> dict[Path, int]:
+       dry_run: bool = False, drop_interrupted: bool = False) -> dict[Path, int]:
     """Delete, inside the artifacts root only, the versions this runner wrote that no `current`
-    pointer needs (a pointed version keeps the upstream versions it was computed from), and the
-    leftovers of runs that ended: `.tmp-*` of dead processes, `.failed-*`, and checkpoints of
-    versions since published. Returns what it removed (with ``dry_run``, what it would remove): path -> bytes."""
+    pointer needs (a pointed version keeps the upstream versions it was computed from) and no
+    interrupted run would resume from (its record in `.runs/`; ``drop_interrupted`` gives those up
+    too), and the leftovers of runs that ended: `.tmp-*` of dead processes, `.failed-*`, and
+    checkpoints that no interrupted run resumes (or whose version was published since). Returns
+    what it removed (with ``dry_run``, what it would remove): path -> bytes."""
     removed: dict[Path, int] = {}
     for scene_dir, stage_dirs in gc_scene_dirs(artifacts, scene_name, data_root).items():
         store = Store(Path(artifacts), scene_dir.name)
@@ -1073,6 +1120,15 @@ def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None, data_
             # reused through the content digest may name an upstream version no pointer names
             todo = [(d.name, os.readlink(p)) for d in stage_dirs for p in d.iterdir()
                     if p.is_symlink() and (p.name == "current" or p.name.startswith("current@"))]
+            interrupted = store.interrupted_runs()
+            if drop_interrupted:
+                for path, _ in interrupted:
+                    removed[path] = path.stat().st_size
+                    if not dry_run:
+                        path.unlink()
+                interrupted = []
+            resumable = {(stage, fp) for _, record in interrupted for stage, fp in record.get("versions", {}).items()}
+            todo += sorted(resumable)
             keep: set[tuple[str, str]] = set()
             while todo:
                 stage, fp = todo.pop()
@@ -1091,8 +1147,9 @@ def gc(artifacts: Path = DEFAULT_ARTIFACTS, scene_name: str | None = None, data_
                         doomed = not _process_alive(leftover["host"], leftover["pid"])
                     elif leftover and leftover["kind"] == "failed":
                         doomed = True
-                    elif leftover and leftover["kind"] == "ckpt":  # its version was published since
-                        doomed = store.is_complete(stage_dir.name, leftover["fp"])
+                    elif leftover and leftover["kind"] == "ckpt":  # published since, or no run to resume it
+                        doomed = (store.is_complete(stage_dir.name, leftover["fp"])
+                                  or (stage_dir.name, leftover["fp"]) not in resumable)
                     else:
                         doomed = False  # not a name this runner writes
                     if doomed:
@@ -1160,6 +1217,8 @@ def _parser() -> argparse.ArgumentParser:
     sp.add_argument("--data-root", type=Path, default=None, help="data root (default $MANIFOLDNEUS_DATA or ../shared/data)")
     sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS, help="the artifacts folder (default ./artifacts)")
     sp.add_argument("--dry-run", action="store_true", help="list what would be removed, remove nothing")
+    sp.add_argument("--drop-interrupted", action="store_true",
+                    help="also give up what killed runs left to resume from (their records in <scene>/.runs)")
     return p
 
 
@@ -1274,7 +1333,7 @@ def _command(args) -> int:
 
             webbrowser.open(path.resolve().as_uri())
     elif args.command == "gc":
-        removed = gc(args.artifacts, args.scene, args.data_root, args.dry_run)
+        removed = gc(args.artifacts, args.scene, args.data_root, args.dry_run, args.drop_interrupted)
         verb = "would remove" if args.dry_run else "removed"
         for path, size in removed.items():
             print(f"{verb} {path}  ({size / 2**20:.1f} MiB)")

@@ -272,15 +272,57 @@ def test_gc_drops_leftovers_of_ended_runs_only(artifacts):
     dead.wait()
     host = socket.gethostname()
     names = {"dead": f".tmp-{fp}-{host}-{dead.pid}", "alive": f".tmp-{fp}-{host}-{os.getpid()}",
-             "published": f".ckpt-{fp}", "resumable": ".ckpt-0123456789ab"}
+             "published": f".ckpt-{fp}", "resumable": ".ckpt-0123456789ab", "orphaned": ".ckpt-ba9876543210"}
     for name in names.values():
         (store.stage_dir("ingest") / name).mkdir()
         (store.stage_dir("ingest") / name / "state.pt").write_bytes(b"x" * 100)
+    # the record a killed run left: it was computing ingest 0123456789ab
+    (store.scene_dir / ".runs").mkdir(exist_ok=True)
+    (store.scene_dir / ".runs" / f"{host}-{dead.pid}.json").write_text(
+        '{"pointer": "current", "versions": {"ingest": "0123456789ab"}}')
     removed = pipeline.gc(artifacts, "synthetic")
-    assert sorted(p.name for p in removed) == sorted([names["dead"], names["published"]])
+    assert sorted(p.name for p in removed) == sorted([names["dead"], names["published"], names["orphaned"]])
     assert (store.stage_dir("ingest") / names["alive"]).is_dir()
     assert (store.stage_dir("ingest") / names["resumable"]).is_dir()
     assert store.current("ingest") == fp
+
+
+def test_gc_keeps_what_a_killed_run_resumes_from(tmp_path):
+    """SIGKILL after the front-end: its versions have no pointer yet, but the run's record keeps
+    them (and its checkpoint) through gc; --drop-interrupted gives them up."""
+    import signal
+    import subprocess
+    import sys
+
+    artifacts = tmp_path / "artifacts"
+    cmd = [sys.executable, str(pipeline.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "anchors",
+           "--artifacts", str(artifacts), *sum((["--set", s] for s in TINY), [])]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        if line.startswith("[anchors] running"):
+            proc.send_signal(signal.SIGKILL)
+            break
+    proc.wait()
+    store = pipeline.Store(artifacts, "synthetic")
+    [(record_path, record)] = store.interrupted_runs()
+    finished = {stage: fp for stage, fp in record["versions"].items() if store.is_complete(stage, fp)}
+    assert {"ingest", "features", "matching", "schedule"} <= set(finished) and "anchors" not in finished
+    assert store.current("schedule") is None  # killed before its pointers moved
+    ckpt = store.stage_dir("anchors") / f".ckpt-{record['versions']['anchors']}"
+    ckpt.mkdir(parents=True, exist_ok=True)
+    orphan = store.stage_dir("anchors") / ".ckpt-ba9876543210"
+    orphan.mkdir()
+    removed = pipeline.gc(artifacts, "synthetic")
+    assert orphan in removed and ckpt.is_dir() and record_path.is_file()
+    assert all(store.is_complete(stage, fp) for stage, fp in finished.items())
+    removed = pipeline.gc(artifacts, "synthetic", drop_interrupted=True)
+    assert not any(store.is_complete(stage, fp) for stage, fp in finished.items()) and not ckpt.exists()
+    assert record_path in removed and not record_path.exists()
+
+
+def test_a_run_that_ends_leaves_no_record(artifacts):
+    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert not list((artifacts / "synthetic" / ".runs").glob("*.json"))
 
 
 def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path):
