@@ -36,6 +36,11 @@ class Params:
     placement: str = param("depth", "Initial pose of a new view: 'depth' (PnP on matches lifted with depth rendered "
                            "from the model, METHOD.md) or 'matches' (incremental SfM on the verified matches of all "
                            "views so far, Sim3-aligned to the optimised poses)", choices=["depth", "matches"])
+    sfm_restart: str = param("none", "Rounds whose placed views also restart from the matches' SfM (COLMAP's mapper "
+                             "over every view placed so far and the round's new ones, Sim3-aligned to the optimised "
+                             "poses), as the new views start: none, last (the final round, when every view joins) "
+                             "or every round. The field keeps what it learnt (docs/REFINEMENT.md)",
+                             choices=["none", "last", "every"])
     pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
     max_rounds: int = param(0, "Stop after this many successor rounds (0 = all); later rounds' views stay unplaced "
                             "(the sweeps of bench/sweep.py only read round 1)", lo=0)
@@ -48,8 +53,9 @@ OUTPUTS = ("final",)
 
 
 def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: float) -> dict:
-    """Poses of ``new_ids`` from an incremental SfM over placed + new views (verified matches only),
-    brought into the model's frame by the Sim3 that maps its placed views onto their optimised poses."""
+    """Poses of placed + new views from an incremental SfM over them (verified matches only),
+    brought into the model's frame by the Sim3 that maps its placed views onto their optimised
+    poses; views the SfM did not register are left out."""
     from manifoldneus import cameras
 
     ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
@@ -61,7 +67,7 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
         return {}
     s, R, t = cameras.umeyama_sim3(cameras.camera_centers(res.w2c[[row[v] for v in ok]]), cameras.camera_centers(w2c[ok]))
     moved = cameras.transform_w2c(res.w2c, s, R, t)
-    return {v: moved[row[v]] for v in new_ids if res.placed[row[v]]}
+    return {v: moved[row[v]] for v in ids if res.placed[row[v]]}
 
 
 def run(ctx) -> None:
@@ -94,6 +100,15 @@ def run(ctx) -> None:
         init = {}
         from_matches = None
         before = np.flatnonzero(placed)  # the views whose poses the round inherits: the SfM's Sim3 is fitted on them
+        restart = p.sfm_restart == "every" or (p.sfm_restart == "last" and r == n_rounds)
+        if restart and len(before):
+            with io.native_output_to(ctx.log_path):
+                from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px)
+            moved = [int(v) for v in before if v in from_matches]
+            for v in moved:
+                w2c[v] = from_matches[v]
+            ctx.log.info("round %d: %d of %d placed views restart from the matches' SfM (successors.sfm_restart = %s)",
+                         r, len(moved), len(before), p.sfm_restart)
         for v in ctx.progress(new, desc=f"round {r}: placing"):
             pose, info = None, {"method": "unplaced"}
             if p.placement == "depth":

@@ -161,3 +161,24 @@ def test_refine_placed_off_learns_only_the_new_views(tiny_run):
     assert np.abs(r2[before] - r1[before]).max() < 1e-6
     start = np.asarray(io.load_arrays(succ / "round_2" / "poses.zarr")["w2c_init"])
     assert np.abs(r2[new] - start[new]).max() > 1e-6
+
+
+def test_the_last_round_can_restart_every_view_from_the_matches_sfm(tiny_run, tmp_path):
+    """successors.sfm_restart=last: the final round starts its earlier-placed views from the SfM over
+    every view (not where the previous round left them); the default keeps them."""
+    import shutil
+
+    from manifoldneus import artifacts as rounds
+
+    artifacts, report = tiny_run
+    copy = tmp_path / "artifacts"
+    shutil.copytree(artifacts, copy, symlinks=True)
+    pipeline.run("synthetic", only="successors", overrides=[*TINY, "successors.sfm_restart=last"], artifacts=copy)
+    for where, restarted in ((artifacts, False), (copy, True)):
+        succ = current(where, "successors")
+        last = max(succ.glob("round_*"), key=lambda d: int(d.name.split("_")[1]))
+        before = rounds.load_round(succ / f"round_{int(last.name.split('_')[1]) - 1}")
+        end = rounds.load_round(last)
+        carried = np.flatnonzero(before["placed"])
+        moved = np.abs(end["w2c_init"][carried] - before["w2c"][carried]).max()
+        assert (moved > 1e-6) == restarted, (where, moved)
