@@ -90,11 +90,14 @@ def test_decimated_page_stays_small(tiny_run, tmp_path):
 
 
 def test_the_page_renders_in_headless_chromium(page, tmp_path):
+    """The run's page, its photos named like the template's placeholders and like HTML (see below),
+    in a real browser: ready, every camera drawn, the mesh in the middle of the picture."""
     if viewer.find_browser() is None:
         pytest.skip("no Chromium on this machine (bash .ci/run installs the Debian package chromium)")
     from PIL import Image
 
-    path, run = page
+    _, run = page
+    path = hostile_page(page[0], tmp_path)
     shown = viewer.render_in_browser(path, tmp_path / "viewer.png", size=(1000, 700))
     attrs = shown["attributes"]
     assert "errors" not in attrs, attrs["errors"]
@@ -111,27 +114,26 @@ def test_the_page_renders_in_headless_chromium(page, tmp_path):
 
 
 HOSTILE = ["{{APP}}", "<!--<script>", "{{IMPORTMAP}}", "</script><b>", "a&b \"q\""]
+HOSTILE_TITLE = "{{IMPORTMAP}} <!--<script> {{DATA}}"
+
+
+def hostile_page(path, tmp_path):
+    """The page of ``path`` rebuilt with its cameras named from HOSTILE and HOSTILE_TITLE as title."""
+    data, _ = page_data(path)
+    for i, camera in enumerate(data["cameras"]):
+        camera["name"] = HOSTILE[i % len(HOSTILE)]
+    out = tmp_path / "hostile.html"
+    out.write_text(viewer.build_page(data, HOSTILE_TITLE))
+    return out
 
 
 def test_names_that_look_like_the_template_or_html_stay_data(page, tmp_path):
     """Photos named like the template's placeholders or like HTML leave the page whole: filled in
-    one pass, the JSON without '<'; in Chromium (when there is one) the page still gets ready."""
-    path, run = page
-    data, _ = page_data(path)
-    for i, camera in enumerate(data["cameras"]):
-        camera["name"] = HOSTILE[i % len(HOSTILE)]
-    title = "{{IMPORTMAP}} <!--<script> {{DATA}}"
-    text = viewer.build_page(data, title)
+    one pass, the JSON without '<' (the browser test renders this page)."""
+    hostile = hostile_page(page[0], tmp_path)
+    text = hostile.read_text()
     app = (viewer.ASSETS / "viewer.js").read_text()
     assert text.count(app) == 1 and text.count("<script type=\"importmap\">{\"imports\"") == 1
-    hostile = tmp_path / "hostile.html"
-    hostile.write_text(text)
-    again, _ = page_data(hostile)
-    assert [c["name"] for c in again["cameras"]] == [c["name"] for c in data["cameras"]]
-    assert f"<title>{html.escape(title)}</title>" in text
-    if viewer.find_browser() is None:
-        pytest.skip("no Chromium on this machine (bash .ci/run installs the Debian package chromium)")
-    shown = viewer.render_in_browser(hostile, tmp_path / "hostile.png", size=(800, 600))
-    assert "errors" not in shown["attributes"], shown["attributes"]["errors"]
-    assert shown["attributes"]["viewer-state"] == "ready"
-    assert int(shown["attributes"]["cameras-drawn"]) == run["optimised"]
+    data, _ = page_data(hostile)
+    assert [c["name"] for c in data["cameras"]][:len(HOSTILE)] == HOSTILE
+    assert f"<title>{html.escape(HOSTILE_TITLE)}</title>" in text
