@@ -163,7 +163,9 @@ def neural_scores(evaluate_dir: Path, units: str | None) -> dict:
     views = ev.get("novel_views", {}).get("summary", {})
     if views:
         masked = "psnr_masked" in views
+        aligned = views.get("aligned_psnr_masked" if masked else "aligned_psnr")
         out.update(psnr=views["psnr_masked" if masked else "psnr"], ssim=views["ssim_masked" if masked else "ssim"],
+                   psnr_aligned=aligned,
                    images_masked=masked, lpips=views.get("lpips"), lpips_status=views.get("lpips_status"))
     return out
 
@@ -325,7 +327,7 @@ def systems_table(result: dict) -> str:
     units = next((s["units"] for s in systems.values() if s.get("units")), "units")
     with_lpips = any(is_number(s.get("lpips")) for s in systems.values())
     header = ["system", "views", "rotation ° mean / median", f"centre ({units}) mean / median", "PRE_r °", "PRE_t °",
-              f"Chamfer ({units})", "PSNR dB", "SSIM", *(["LPIPS"] if with_lpips else []), "wall s", "peak MiB",
+              f"Chamfer ({units})", "PSNR dB", "PSNR dB aligned", "SSIM", *(["LPIPS"] if with_lpips else []), "wall s", "peak MiB",
               *(f"{col} ÷ pycolmap" for col, _ in RATIOS)]
     rows = []
     for s in systems.values():
@@ -335,7 +337,7 @@ def systems_table(result: dict) -> str:
             f"{fmt(s.get('rot_err_deg_mean'))} / {fmt(s.get('rot_err_deg_median'))}",
             f"{fmt(s.get('center_err_units_mean'))} / {fmt(s.get('center_err_units_median'))}",
             fmt(s.get("pre_r_deg_mean")), fmt(s.get("pre_t_deg_mean")), fmt(s.get("chamfer_units")),
-            fmt(s.get("psnr"), ".2f"), fmt(s.get("ssim"), ".3f"), *([fmt(s.get("lpips"), ".3f")] if with_lpips else []),
+            fmt(s.get("psnr"), ".2f"), fmt(s.get("psnr_aligned"), ".2f"), fmt(s.get("ssim"), ".3f"), *([fmt(s.get("lpips"), ".3f")] if with_lpips else []),
             fmt(s["wall_seconds"], ".1f"), fmt(s["peak_rss_mib"], ".0f"),
             *(fmt(s["over_pycolmap"][col], ".2f") for col, _ in RATIOS),
         ])

@@ -471,8 +471,12 @@ def section_heldout(page: Page, systems: dict[str, Pointers]) -> None:
             page.missing(f"{name} held-out renderings", "stage evaluate")
             continue
         s = nvs["summary"]
-        page.add("mean over held-out views: " + ", ".join(f"{k} {_fmt(s.get(k), 3)}" for k in
-                                                         ("psnr", "psnr_masked", "ssim", "lpips") if k in s), "")
+        page.add("mean over held-out views, at the Sim3-mapped GT poses: " + ", ".join(
+            f"{k} {_fmt(s.get(k), 3)}" for k in ("psnr", "psnr_masked", "ssim", "lpips") if k in s), "")
+        if any(k.startswith("aligned_") for k in s):
+            page.add("after test-time alignment (each held-out pose refined against the frozen field): " + ", ".join(
+                f"{k[len('aligned_'):]} {_fmt(s[k], 3)}" for k in ("aligned_psnr", "aligned_psnr_masked",
+                                                                   "aligned_ssim", "aligned_ssim_masked") if k in s), "")
         for row in nvs["per_view"][:MAX_HELDOUT_IMAGES]:
             png = ev / "novel_views" / f"{row['name']}.png"
             if png.is_file():

@@ -23,6 +23,7 @@ def test_refinement_bench_two_seeds(tmp_path, capsys):
         assert r["placement"]["rot_deg"] > 0 and r["pycolmap"]["rot_deg"] is not None
         assert r["guard_checked"] == len(r["rounds"]) - 1  # every trained round checked
         assert r["stage_seconds"]["anchors"] > 0
+        assert r["psnr_masked_aligned"] > 0  # held-out views scored again after test-time alignment
     # the GT-pose NeuS only for the first seed, at the rounds' total iterations
     assert runs[0]["gt_pose_iters"] == runs[0]["rounds_iters"] and "gt_pose_psnr_masked" not in runs[1]
     # sfm-all: poses for every seed, NeuS on them at the rounds' iterations for the first only
