@@ -39,7 +39,8 @@ class Params:
     sfm_restart: str = param("none", "Rounds whose placed views also restart from the matches' SfM (COLMAP's mapper "
                              "over every view placed so far and the round's new ones, Sim3-aligned to the optimised "
                              "poses), as the new views start: none, last (the final round, when every view joins) "
-                             "or every round. The field keeps what it learnt (docs/REFINEMENT.md)",
+                             "or every round. The field keeps what it learnt; with refine_placed false the restarted poses are "
+                             "then held (docs/REFINEMENT.md)",
                              choices=["none", "last", "every"])
     pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
     max_rounds: int = param(0, "Stop after this many successor rounds (0 = all); later rounds' views stay unplaced "

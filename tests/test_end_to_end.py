@@ -149,7 +149,8 @@ def test_max_rounds_stops_after_the_first_successor_round(tiny_run):
 
 def test_refine_placed_off_learns_only_the_new_views(tiny_run):
     artifacts, _ = tiny_run
-    report = pipeline.run("synthetic", overrides=TINY + ["successors.refine_placed=false", "successors.max_rounds=2"],
+    report = pipeline.run("synthetic", overrides=TINY + ["successors.refine_placed=false", "successors.max_rounds=2",
+                                                         "successors.sfm_restart=none"],
                           until="successors", artifacts=artifacts)
     assert report["anchors"] == "reused" and report["successors"] == "computed"
     succ = current(artifacts, "successors")
@@ -164,8 +165,8 @@ def test_refine_placed_off_learns_only_the_new_views(tiny_run):
 
 
 def test_the_last_round_can_restart_every_view_from_the_matches_sfm(tiny_run, tmp_path):
-    """successors.sfm_restart=last: the final round starts its earlier-placed views from the SfM over
-    every view (not where the previous round left them); the default keeps them."""
+    """successors.sfm_restart=last (the fast profile's): the final round starts its earlier-placed
+    views from the SfM over every view, not where the previous round left them; none keeps them."""
     import shutil
 
     from manifoldneus import artifacts as rounds
@@ -173,9 +174,10 @@ def test_the_last_round_can_restart_every_view_from_the_matches_sfm(tiny_run, tm
     artifacts, report = tiny_run
     copy = tmp_path / "artifacts"
     shutil.copytree(artifacts, copy, symlinks=True)
-    pipeline.run("synthetic", only="successors", overrides=[*TINY, "successors.sfm_restart=last"], artifacts=copy)
-    for where, restarted in ((artifacts, False), (copy, True)):
-        succ = current(where, "successors")
+    kept = pipeline.run("synthetic", only="successors", overrides=[*TINY, "successors.sfm_restart=none"], artifacts=copy)
+    for where, fp, restarted in ((artifacts, report.fingerprints["successors"], True),
+                                 (copy, kept.fingerprints["successors"], False)):
+        succ = where / "synthetic" / "successors" / fp
         last = max(succ.glob("round_*"), key=lambda d: int(d.name.split("_")[1]))
         before = rounds.load_round(succ / f"round_{int(last.name.split('_')[1]) - 1}")
         end = rounds.load_round(last)

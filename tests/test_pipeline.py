@@ -174,7 +174,7 @@ def test_an_unavailable_device_stops_the_run_before_its_first_stage(artifacts, m
         pipeline.run("synthetic", until="anchors", overrides=["run.device=gpu"], artifacts=artifacts)
     assert not artifacts.exists()  # nothing computed, nothing created
     # stages that never touch torch's device do not need it
-    assert pipeline.run("synthetic", until="ingest", overrides=["run.device=cuda"], artifacts=artifacts)
+    assert pipeline.run("synthetic", until="ingest", overrides=[*FAST_SYNTH, "run.device=cuda"], artifacts=artifacts)
 
 
 def test_unknown_stage_and_profile(artifacts):
