@@ -175,6 +175,14 @@ def extract_mesh(sdf_fn, resolution: int = 256, radius: float = 1.0, keep_compon
     return mesh
 
 
+def load_mesh(path):
+    """A PLY this package wrote, as a Trimesh: an empty one too (trimesh reads a file without faces
+    as an empty Scene, which has no ``faces``)."""
+    import trimesh
+
+    return trimesh.load(str(path), process=False, force="mesh")
+
+
 def save_ply(mesh, path) -> None:
     """Binary PLY."""
     Path(path).write_bytes(mesh.export(file_type="ply"))

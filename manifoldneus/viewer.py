@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, cameras, export, io
+from manifoldneus import artifacts, cameras, export, io, meshing
 
 ASSETS = Path(__file__).with_name("viewer_assets")
 MAX_FACES = 200_000  # what a browser turns smoothly on a laptop; larger meshes are decimated to it
@@ -109,7 +109,6 @@ def _errors(w2c: np.ndarray, gt: np.ndarray, present: np.ndarray) -> list:
 def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
     """What the page draws, from the version folders of one run (stage -> folder; ``ingest``,
     ``ground_truth``, ``schedule``, ``reference``, ``anchors``, ``successors`` and ``export``)."""
-    import trimesh
 
     views_meta = io.load_json(versions["ingest"] / "views.json")
     names, width, height = views_meta["names"], views_meta["width"], views_meta["height"]
@@ -146,7 +145,7 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
         rounds_json.append(entry)
 
     roles = ["held out" if held_out[i] else v["role"] for i, v in enumerate(schedule["views"])]
-    mesh = trimesh.load(versions["export"] / "mesh.ply", process=False)
+    mesh = meshing.load_mesh(versions["export"] / "mesh.ply")
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     colours = None
     if mesh.visual.kind == "vertex":

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import artifacts, evaluation, io, metrics, pose_metrics, posefree
+from manifoldneus import artifacts, evaluation, io, meshing, metrics, pose_metrics, posefree
 from manifoldneus.config import holdout_mask, param
 
 
@@ -156,9 +156,8 @@ def run(ctx) -> None:
     pose_metrics.plot_cameras(final_res["w2c_aligned"], gt["w2c"], ctx.out / "cameras.png", valid=final_res["valid"],
                               title=f"{ctx.scene}: final poses (Sim3-aligned) vs GT")
     # --- geometry
-    import trimesh
 
-    mesh = trimesh.load(ctx.input("mesh") / "mesh.ply", process=False)
+    mesh = meshing.load_mesh(ctx.input("mesh") / "mesh.ply")
     al = final_res["alignment"]
     pred = metrics.sample_surface(mesh, p.chamfer_points) if len(mesh.faces) else np.zeros((0, 3))
     pred = al["s"] * pred @ np.asarray(al["R"]).T + np.asarray(al["t"])
@@ -175,7 +174,7 @@ def run(ctx) -> None:
     else:
         ref_meta = io.load_json(ctx.input("reference_surface") / "reference.json")
         if ref_meta.get("trained"):
-            ref_mesh = trimesh.load(ctx.input("reference_surface") / "mesh.ply", process=False)
+            ref_mesh = meshing.load_mesh(ctx.input("reference_surface") / "mesh.ply")
             ref_pts = metrics.sample_surface(ref_mesh, p.chamfer_points)
             ref_label = "mesh of the GT-pose reference_surface (not DTU's official point cloud)"
             diag = float(np.linalg.norm(ref_pts.max(0) - ref_pts.min(0)))

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import artifacts, cameras, evaluation, export, io, posefree
+from manifoldneus import artifacts, cameras, evaluation, export, io, meshing, posefree
 from manifoldneus.config import param
 
 
@@ -81,7 +81,7 @@ def run(ctx) -> None:
 
     import trimesh
 
-    mesh = trimesh.load(ctx.input("mesh") / "mesh.ply", process=False)
+    mesh = meshing.load_mesh(ctx.input("mesh") / "mesh.ply")
     if p.vertex_colours and len(mesh.faces):
         ids = np.flatnonzero(final["optimised"].astype(bool))
         trainer = evaluation.trainer_from_checkpoint(final_dir / "model.pt", posefree.subset_views(views, ids, w2c),

@@ -598,3 +598,15 @@ def test_a_checkpoint_that_does_not_fit_leaves_the_previous_one(tmp_path, monkey
         tr.save(path)
     assert e.value.errno == errno.ENOSPC and e.value.filename == str(path)
     assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["round_0.pt"]
+
+
+def test_an_empty_mesh_reads_back_as_an_empty_mesh(tmp_path):
+    """A field with no surface in the sphere meshes to nothing; evaluate, export and the viewer read
+    that file back as a mesh with no faces (trimesh alone reads it as a Scene, which has none)."""
+    import trimesh
+
+    from manifoldneus.meshing import load_mesh, save_ply
+
+    save_ply(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)), tmp_path / "mesh.ply")
+    mesh = load_mesh(tmp_path / "mesh.ply")
+    assert isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0
