@@ -33,7 +33,7 @@ view: setup
 	$(PY) pipeline.py view --scene $(SCENE) $(ARGS)
 
 test: setup
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n 2 --dist loadfile tests
 
 # the bench (scan24 unless SCENE or SCENES is given), then README's Results regenerated from the latest bench JSON of each scene
 BENCH_SCENES = $(if $(filter command line,$(origin SCENES)),$(SCENES),$(if $(filter command line,$(origin SCENE)),$(SCENE),scan24))
