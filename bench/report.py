@@ -36,7 +36,8 @@ sys.path.insert(0, str(ROOT))
 import pipeline  # noqa: E402
 from manifoldneus import artifacts, io, pose_metrics  # noqa: E402
 
-SYSTEMS = {"ManifoldNeuS": None, "NeuS-BARF": "neus-barf", "NeuS-COLMAP": "neus-colmap"}  # name -> preset
+SYSTEMS = {"ManifoldNeuS": None, "NeuS-BARF": "neus-barf", "NeuS-COLMAP": "neus-colmap",
+           "SfM-all + NeuS": "sfm-all"}  # name -> preset
 REFERENCE = "pycolmap"
 BIAS_SYSTEMS = ("NeuS-BARF", "ManifoldNeuS")  # Fig. A1: the uniform baseline, then ours
 TOP_P = 20.0  # % of views in the easy (top) and hard (bottom) groups by overlap c_i
@@ -132,8 +133,46 @@ def pose_error_rows(rounds: list[RoundPoses], gt: GroundTruth) -> list[dict]:
             continue
         res = pose_metrics.evaluate_poses(r.w2c, gt.w2c, valid=r.valid, units_scale=gt.units_per_scene_unit)
         rows.append({"label": r.label, "n_views": res["n_valid"], "summary": res["summary"],
-                     "w2c_aligned": res["w2c_aligned"], "valid": res["valid"]})
+                     "w2c_aligned": res["w2c_aligned"], "valid": res["valid"], "rot_err_deg": res["rot_err_deg"]})
     return rows
+
+
+def placement_round(rounds: list[RoundPoses]) -> RoundPoses | None:
+    """Every view at the pose it was placed with: the anchors at their initialisation, a successor at
+    the start of the round that added it (what the rounds then refine)."""
+    if not rounds or rounds[0].label != "initial":
+        return None
+    w2c, valid = rounds[0].w2c.copy(), rounds[0].valid.copy()
+    for r in rounds[2:]:  # the successor rounds
+        new = [v for v in (r.trained or {}).get("info", {}).get("new_views", []) if r.valid[v]]
+        w2c[new] = r.trained["w2c_init"][new]
+        valid[new] = True
+    return RoundPoses("placement", w2c, valid)
+
+
+def section_pose_per_view(page: Page, rows: dict[str, list[dict]], placement: list[dict] | None,
+                          names: list[str]) -> None:
+    """Each view's rotation error at placement, after each of ManifoldNeuS's rounds, and in sfm-all
+    (COLMAP's mapper on our matches over every view): where the rounds help a view and where not."""
+    ours, sfm = rows.get("ManifoldNeuS"), rows.get("SfM-all + NeuS")
+    if not ours:
+        return
+    columns = [*(placement or []), *[r for r in ours if r["summary"] is not None]]
+    if sfm and sfm[-1]["summary"] is not None:
+        columns.append({**sfm[-1], "label": "sfm-all"})
+    page.add("## Rotation error per view (deg)", "",
+             "Each column Sim3-aligned on its own views; `placement`: each view at the pose it was placed with "
+             "(anchors: their initialisation; the others: the start of the round that added them); `sfm-all`: "
+             "COLMAP's mapper and bundle adjustment on our matches over every training view (the preset of that "
+             "name; run it with `--preset sfm-all`)." if sfm else "Each column Sim3-aligned on its own views; "
+             "`placement`: each view at the pose it was placed with. Run `--preset sfm-all` for its column.", "",
+             "| view | " + " | ".join(c["label"] for c in columns) + " |",
+             "|---|" + "---:|" * len(columns))
+    for v, name in enumerate(names):
+        cells = [_fmt(c["rot_err_deg"][v]) if c["valid"][v] else "" for c in columns]
+        if any(cells):
+            page.add(f"| {name} | " + " | ".join(cells) + " |")
+    page.add("")
 
 
 def round_position(label: str) -> int:
@@ -554,11 +593,15 @@ def build_report(scene: str, artifacts: Path = pipeline.DEFAULT_ARTIFACTS, out: 
     page = Page(out)
     page.add(f"# Report: {name}", "",
              f"Built {dt.datetime.now().isoformat(timespec='seconds')} from the artifacts in `{Path(artifacts)}` "
-             "only (nothing was trained). Systems: ManifoldNeuS (default run), the presets `neus-barf` and "
-             "`neus-colmap`, and the pycolmap reference (stages `reference` + `evaluate_poses`).", "")
+             "only (nothing was trained). Systems: ManifoldNeuS (default run), the presets `neus-barf`, "
+             "`neus-colmap` and `sfm-all`, and the pycolmap reference (stages `reference` + `evaluate_poses`).", "")
     section_systems(page, systems, reference, scene)
     section_viewer(page, systems, scene)
     section_pose_errors(page, rows, gt, scene)
+    if gt and rows.get("ManifoldNeuS"):
+        placed = placement_round(rounds["ManifoldNeuS"])
+        names = io.load_json(shared_stage(pointers, "ingest") / "views.json")["names"]
+        section_pose_per_view(page, rows, pose_error_rows([placed], gt) if placed else None, names)
     section_schedule(page, systems, scene)
     section_cameras(page, systems, reference, rows, gt)
     section_losses(page, {s: rounds[s] for s in systems})

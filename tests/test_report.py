@@ -88,3 +88,19 @@ def test_easy_view_bias_numbers(built_report):
                 assert all(np.isfinite(b[key][i]) for i in learning), (system, key)
             shares += [b["top_share"][i] for i in learning]
         assert shares and all(0.0 <= s <= 1.0 for s in shares), system
+
+
+def test_rotation_error_per_view_from_placement_to_the_last_round(built_report):
+    artifacts, page = built_report
+    text = page.read_text()
+    rounds = sorted(p.name for p in current(artifacts, "successors").glob("round_*"))
+    header = "| view | placement | initial | anchors | " + " | ".join(rounds) + " |"
+    assert header in text and "Run `--preset sfm-all` for its column." in text  # sfm-all not run here
+    table = text.split(header)[1].split("\n\n")[0].strip().splitlines()[1:]
+    cells = [[c.strip() for c in row.strip("|").split("|")] for row in table]
+    last = [float(c[-1]) for c in cells if c[-1]]
+    placed = io.load_arrays(current(artifacts, "successors") / "final" / "poses.zarr")["placed"]
+    assert len(last) == int(placed.sum()) and all(c[1] for c in cells)  # every posed view has a placement error
+    # the last column is the last round's per-view errors: its mean is that round's row above
+    mean = float(re.search(rf"^\| ManifoldNeuS \| {rounds[-1]} \| \d+ \| ([\d.]+) \|", text, re.M).group(1))
+    assert np.mean(last) == pytest.approx(mean, abs=2e-3)
