@@ -431,9 +431,9 @@ class Store:
             todo.extend(self.manifest(name, fp).get("upstream", {}).items())
         return out
 
-    # A run's record: the versions it has started or finished, written as it goes. A run killed
-    # before its pointers move (SIGKILL, a lost node) leaves it, so that gc keeps what running the
-    # same command again resumes from (its finished versions and its checkpoints).
+    # A run's record: the versions it has started or finished, written as it goes. A run that does
+    # not end normally (a failure, Ctrl-C, SIGKILL, a lost node) leaves it, so that gc keeps what
+    # running the same command again resumes from (its finished versions and its checkpoints).
     def record_run(self, versions: dict[str, str]) -> None:
         path = self.scene_dir / ".runs" / f"{_process()}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -442,17 +442,16 @@ class Store:
                                    "versions": versions}))
         os.replace(tmp, path)
 
-    def end_run(self, superseded: bool) -> None:
-        """Drop this run's record; with ``superseded`` (it ended normally) also the records that
-        interrupted runs of the same pointer left (this one has done what they would resume)."""
-        runs = self.scene_dir / ".runs"
-        (runs / f"{_process()}.json").unlink(missing_ok=True)
+    def end_run(self) -> None:
+        """A run ended normally: drop its record and those that interrupted runs of the same pointer
+        left (this one has done what they would resume)."""
+        (self.scene_dir / ".runs" / f"{_process()}.json").unlink(missing_ok=True)
         for path, record in self.interrupted_runs():
-            if superseded and record.get("pointer") == self.pointer:
+            if record.get("pointer") == self.pointer:
                 path.unlink(missing_ok=True)
 
     def interrupted_runs(self) -> list[tuple[Path, dict]]:
-        """(path, record) of the runs that ended without removing their record (killed)."""
+        """(path, record) of the runs that ended without removing their record (interrupted)."""
         out = []
         for path in sorted((self.scene_dir / ".runs").glob("*.json")):
             host, _, pid = path.stem.rpartition("-")
@@ -800,16 +799,13 @@ def run(
                     report[name] = "reused"
                     print(f"[{name}] up to date ({fp})", file=sys.stderr)
                 report.fingerprints[name] = fp
-        except BaseException:
-            ended_normally = False
-            raise
-        else:
-            ended_normally = True
         finally:  # also after a failure: the stages done so far are current
             with store.moving_pointers():
                 for name, fp in report.fingerprints.items():
                     store.set_current(name, fp)
-            store.end_run(superseded=ended_normally)
+        # only a run that ended normally: after a failure or Ctrl-C the record keeps the checkpoint of
+        # the stage in progress through gc, for the same command to resume
+        store.end_run()
     return report
 
 

@@ -320,6 +320,33 @@ def test_gc_keeps_what_a_killed_run_resumes_from(tmp_path):
     assert record_path in removed and not record_path.exists()
 
 
+def test_gc_keeps_the_checkpoint_a_ctrl_c_left_to_resume(artifacts, monkeypatch):
+    """Ctrl-C in a stage: the run's record stays (its process then ends), so gc keeps the checkpoint
+    the same command resumes from."""
+    import socket
+    import subprocess
+
+    import stages.features as features
+
+    def interrupted(ctx):
+        ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        (ctx.checkpoint_dir / "state.pt").write_bytes(b"x")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(features, "run", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
+    monkeypatch.undo()
+    store = pipeline.Store(artifacts, "synthetic")
+    [record] = (store.scene_dir / ".runs").glob("*.json")
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    record.rename(record.with_name(f"{socket.gethostname()}-{dead.pid}.json"))  # as when the process has ended
+    [ckpt] = store.stage_dir("features").glob(".ckpt-*")
+    pipeline.gc(artifacts, "synthetic")
+    assert ckpt.is_dir() and store.current("ingest") is not None
+
+
 def test_a_run_that_ends_leaves_no_record(artifacts):
     pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
     assert not list((artifacts / "synthetic" / ".runs").glob("*.json"))
