@@ -156,34 +156,44 @@ def cache_root() -> Path:
 _DIGESTS: dict | None = None
 
 
-def file_digest(path: Path) -> str:
-    """Hash of a file's bytes (blake2b, 16 hex digits). Remembered per file by size, mtime, ctime and
-    inode: a file rewritten in place, even with its size and mtime restored, gets a new ctime."""
+def file_digests(paths) -> list[str]:
+    """Hash of each file's bytes (blake2b, 16 hex digits). Remembered per file by size, mtime, ctime
+    and inode (a file rewritten in place, even with its size and mtime restored, gets a new ctime),
+    in one cache file written once per call."""
     import hashlib
 
     global _DIGESTS
-    path = Path(path).resolve()
-    st = path.stat()
-    key, stamp = str(path), [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]
     store = cache_root() / "file-digests.json"
     if _DIGESTS is None:
         try:
             _DIGESTS = json.loads(store.read_text())
         except (OSError, ValueError):
             _DIGESTS = {}
-    known = _DIGESTS.get(key)
-    if known is not None and known[:4] == stamp:
-        return known[4]
-    h = hashlib.blake2b(digest_size=8)
-    with open(path, "rb") as f:
-        while chunk := f.read(1 << 22):
-            h.update(chunk)
-    _DIGESTS[key] = [*stamp, h.hexdigest()]
-    try:  # a cache: a read-only home or a race with another run only costs a re-hash later
-        store.parent.mkdir(parents=True, exist_ok=True)
-        tmp = store.with_name(f".{store.name}.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps(_DIGESTS))
-        os.replace(tmp, store)
-    except OSError:
-        pass
-    return _DIGESTS[key][4]
+    out, changed = [], False
+    for path in paths:
+        path = Path(path).resolve()
+        st = path.stat()
+        key, stamp = str(path), [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]
+        known = _DIGESTS.get(key)
+        if known is None or known[:4] != stamp:
+            h = hashlib.blake2b(digest_size=8)
+            with open(path, "rb") as f:
+                while chunk := f.read(1 << 22):
+                    h.update(chunk)
+            _DIGESTS[key] = known = [*stamp, h.hexdigest()]
+            changed = True
+        out.append(known[4])
+    if changed:
+        try:  # a cache: a read-only home or a race with another run only costs a re-hash later
+            store.parent.mkdir(parents=True, exist_ok=True)
+            tmp = store.with_name(f".{store.name}.tmp-{os.getpid()}")
+            tmp.write_text(json.dumps(_DIGESTS))
+            os.replace(tmp, store)
+        except OSError:
+            pass
+    return out
+
+
+def file_digest(path: Path) -> str:
+    """:func:`file_digests` of one file."""
+    return file_digests([path])[0]

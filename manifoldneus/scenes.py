@@ -101,14 +101,14 @@ def detect_layout(path: Path) -> str:
 
 
 def input_signature(ref: SceneRef) -> str:
-    """Hash of every input file's relative path and content (:func:`io.file_digest`: read once, then
+    """Hash of every input file's relative path and content (:func:`io.file_digests`: read once, then
     remembered while the file's size, times and inode stay)."""
     if ref.kind == "synthetic":
         return f"synthetic-{ref.seed}"
+    files = [p for p in sorted(ref.path.rglob("*")) if p.is_file()]
     h = hashlib.sha256()
-    for p in sorted(ref.path.rglob("*")):
-        if p.is_file():
-            h.update(f"{p.relative_to(ref.path)}|{io.file_digest(p)}\n".encode())
+    for p, digest in zip(files, io.file_digests(files)):
+        h.update(f"{p.relative_to(ref.path)}|{digest}\n".encode())
     return h.hexdigest()[:16]
 
 

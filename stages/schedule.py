@@ -159,7 +159,7 @@ def run(ctx) -> None:
             f"{ctx.scene}: {len(sched.anchors)} anchor view(s) of {n_sched} schedulable ({N} views, {int(held_out.sum())} "
             f"held out by split.holdout_every={ctx.section('split').holdout_every}, {len(outside)} outside the "
             f"largest co-visibility component); the anchors' initialisation needs at least {MIN_ANCHORS}: "
-            + (f"--set schedule.anchor_percent={need}" if need and need <= 100 else "add photos")
+            + (f"--set schedule.anchor_percent={need}" if need else "add photos")
             + (" or --set split.holdout_every=0" if held_out.any() else ""))
     if outside:
         ctx.log.warning("views %s are outside the largest co-visibility component: not scheduled (role 'excluded'); "

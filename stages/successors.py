@@ -92,17 +92,10 @@ def run(ctx) -> None:
     for r in range(1, n_rounds + 1):
         new = [*left_out, *(int(v) for v in np.flatnonzero((rounds == r) & inputs.train_mask))]
         left_out = []
-        # initial poses of the new views (depth PnP against the previous round's model, or the matches)
-        if p.placement == "depth":
-            probe = posefree.Round(ctx, inputs, np.flatnonzero(placed), w2c, np.ones(len(w2c)), iters=1, pose_lr=0.0,
-                                   pose_warmup_frac=0.0, learn_poses=False, carry=carry)
-            depth_at = posefree.depth_at_fn(probe)
-        placed_poses = {int(v): w2c[v] for v in np.flatnonzero(placed)}
-        init = {}
         from_matches = None
         before = np.flatnonzero(placed)  # the views whose poses the round inherits: the SfM's Sim3 is fitted on them
         restart = p.sfm_restart == "every" or (p.sfm_restart == "last" and r == n_rounds)
-        if restart and len(before):
+        if restart and len(before):  # first, so that depth PnP places the new views against the restarted poses
             with io.native_output_to(ctx.log_path):
                 from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px)
             moved = [int(v) for v in before if v in from_matches]
@@ -110,6 +103,13 @@ def run(ctx) -> None:
                 w2c[v] = from_matches[v]
             ctx.log.info("round %d: %d of %d placed views restart from the matches' SfM (successors.sfm_restart = %s)",
                          r, len(moved), len(before), p.sfm_restart)
+        # initial poses of the new views (depth PnP against the previous round's model, or the matches)
+        if p.placement == "depth":
+            probe = posefree.Round(ctx, inputs, before, w2c, np.ones(len(w2c)), iters=1, pose_lr=0.0,
+                                   pose_warmup_frac=0.0, learn_poses=False, carry=carry)
+            depth_at = posefree.depth_at_fn(probe)
+        placed_poses = {int(v): w2c[v] for v in before}
+        init = {}
         for v in ctx.progress(new, desc=f"round {r}: placing"):
             pose, info = None, {"method": "unplaced"}
             if p.placement == "depth":
