@@ -104,7 +104,8 @@ class Round:
     def __init__(self, ctx, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
                  pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
                  pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None,
-                 sfm_points: dict | None = None):
+                 sfm_points: dict | None = None, image_size: int | None = None):
+        """image_size: longest side the round trains at (None: ``train.image_size``; 0: the images' own)."""
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
@@ -129,12 +130,15 @@ class Round:
             ms = correspondence.MatchSet(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs,
                                          self.corr_p.holdout_frac, self.corr_p.seed)
             self.corr = correspondence.CorrespondenceLoss(ms.to(device), self.corr_p, correspondence_weight)
+        train_p = ctx.section("train")
+        if image_size is not None:
+            train_p = dataclasses.replace(train_p, image_size=int(image_size))
         # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
         # correction driven by an unfitted field only moves good initial poses away.
         self.pose_start = int(round(pose_start_frac * iters))
         self.trainer = Trainer(
             subset_views(inputs.views, self.ids, w2c_all), ctx.section("field"), ctx.section("render"),
-            ctx.section("loss"), ctx.section("train"), run=run,
+            ctx.section("loss"), train_p, run=run,
             band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,
                                                                 gate_p),
             pose_start=self.pose_start, pose_loss=self.corr,

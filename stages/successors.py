@@ -42,6 +42,10 @@ class Params:
                              "or every round. The field keeps what it learnt; with refine_placed false the restarted poses are "
                              "then held (docs/REFINEMENT.md)",
                              choices=["none", "last", "every"])
+    final_image_size: int = param(-1, "Longest side (px) the last round trains at: -1 = train.image_size like the "
+                                  "other rounds, 0 = the images' own size (coarse-to-fine over image resolution: "
+                                  "the earlier rounds fit the field at train.image_size, the last one sharpens it "
+                                  "and the poses on the full images; a step costs the same at any size)", lo=-1)
     pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
     max_rounds: int = param(0, "Stop after this many successor rounds (0 = all); later rounds' views stay unplaced "
                             "(the sweeps of bench/sweep.py only read round 1)", lo=0)
@@ -139,11 +143,13 @@ def run(ctx) -> None:
             w2c[v] = pose
             placed[v] = True
         ids = np.flatnonzero(placed)
-        iters = p.final_iters if r == n_rounds and p.final_iters else p.iters
+        last = r == n_rounds
+        iters = p.final_iters if last and p.final_iters else p.iters
         rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters,
                              pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
                              carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
-                             pose_ids=None if p.refine_placed else new, sfm_points=sfm_points)
+                             pose_ids=None if p.refine_placed else new, sfm_points=sfm_points,
+                             image_size=p.final_image_size if last and p.final_image_size >= 0 else None)
         summary = rnd.run(ctx, f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt")
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,

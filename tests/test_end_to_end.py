@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
+import torch
 
 from conftest import TINY
 
@@ -184,3 +186,19 @@ def test_the_last_round_can_restart_every_view_from_the_matches_sfm(tiny_run, tm
         carried = np.flatnonzero(before["placed"])
         moved = np.abs(end["w2c_init"][carried] - before["w2c"][carried]).max()
         assert (moved > 1e-6) == restarted, (where, moved)
+
+
+def test_the_last_round_can_train_on_the_images_own_size(tiny_run):
+    """successors.final_image_size=0: coarse-to-fine over image resolution. The earlier rounds train
+    at train.image_size (32 px here), the last at the images' own 128 px, and the evaluation scores
+    the final model at its size."""
+    artifacts, _ = tiny_run
+    report = pipeline.run("synthetic", overrides=TINY + ["successors.max_rounds=2", "successors.final_image_size=0"],
+                          artifacts=artifacts)
+    assert report["successors"] == "computed"
+    succ = current(artifacts, "successors")
+    size = {r: torch.load(succ / f"round_{r}" / "model.pt", map_location="cpu", weights_only=False)["params"]["train"]
+            ["image_size"] for r in (1, 2)}
+    assert size == {1: 32, 2: 0}
+    rendered = sorted((current(artifacts, "evaluate") / "novel_views").glob("*.png"))
+    assert rendered and cv2.imread(str(rendered[0])).shape[1] == 2 * 128  # rendered | real, at 128 px
