@@ -177,16 +177,21 @@ class RunParams:
 
 @dataclasses.dataclass
 class SplitParams:
-    """Section `split` of params.yaml: which views are held out for novel-view evaluation."""
+    """Section `split` of params.yaml: which views are held out for novel-view evaluation. Views are
+    held out only where cameras to score them come with the input (every layout but a plain folder
+    of photos): in a user's own capture every photo gets a pose."""
 
-    holdout_every: int = param(8, "Hold out views 0, k, 2k, ... from scheduling and training (0 = none)", lo=0)
+    holdout_every: int = param(8, "Hold out views 0, k, 2k, ... from scheduling and training (0 = none); in inputs "
+                               "that come with cameras only, unless holdout_without_cameras", lo=0)
+    holdout_without_cameras: bool = param(False, "Hold views out of a plain folder of photos too (nothing can score "
+                                           "them there: they get no pose and are not exported)")
 
 
-def holdout_mask(n_views: int, split: SplitParams):
-    """bool [N]: True for held-out views."""
+def holdout_mask(n_views: int, split: SplitParams, has_cameras: bool = True):
+    """bool [N]: True for held-out views; ``has_cameras``: the input comes with cameras to score them."""
     import numpy as np
 
     mask = np.zeros(n_views, bool)
-    if split.holdout_every > 0:
+    if split.holdout_every > 0 and (has_cameras or split.holdout_without_cameras):
         mask[:: split.holdout_every] = True
     return mask

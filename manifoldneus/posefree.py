@@ -21,7 +21,6 @@ import numpy as np
 import torch
 
 from manifoldneus import correspondence, gate, io
-from manifoldneus.config import holdout_mask
 from manifoldneus.train import Trainer, TrainRun, Views
 
 
@@ -63,7 +62,8 @@ def load_inputs(ctx) -> SceneInputs:
     matches, _ = load_matches(ctx.input("matching") / "matches.zarr")
     W = io.load_arrays(ctx.input("covisibility") / "covisibility.zarr", ["W"])["W"].astype(np.float64)
     schedule = load_schedule(ctx.input("schedule"))
-    train_mask = (schedule["round"] >= 0) & ~holdout_mask(n, ctx.section("split"))
+    held_out = np.isin(np.arange(n), schedule["meta"]["held_out_views"])  # the schedule decided them
+    train_mask = (schedule["round"] >= 0) & ~held_out
     return SceneInputs(views, meta["names"], [f["keypoints"] for f in feats], pairs_from_matches(matches), W,
                        schedule, train_mask, meta.get("intrinsics_source", "calibrated"))
 

@@ -187,6 +187,11 @@ def _downscale(views: dict, factor: int) -> dict:
     return out
 
 
+def layout_has_cameras(layout: str) -> bool:
+    """Whether a layout comes with cameras (ground truth for scoring): all but a plain photo folder."""
+    return layout != "images"
+
+
 # Arrays and lists with one entry per view, in view order: what a view subset must slice.
 PER_VIEW_KEYS = ("images", "K", "masks", "mono_depth", "mono_normal", "names", "w2c")
 

@@ -104,7 +104,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "reference")
-SECTIONS = ("anchors", "train", "field", "render", "loss", "gate", "correspondence", "run", "split")
+SECTIONS = ("anchors", "train", "field", "render", "loss", "gate", "correspondence", "run")
 OUTPUTS = ("round_0", "initial_poses.zarr")
 
 

@@ -85,6 +85,7 @@ def run(ctx) -> None:
         "names": names, "height": h, "width": w, "layout": layout,
         "has_masks": "masks" in views, "has_mono_depth": "mono_depth" in views,
         "has_mono_normal": "mono_normal" in views, "intrinsics_source": intrinsics_source,
+        "has_cameras": scenes.layout_has_cameras(layout),
         "source": str(ctx.scene_ref.path) if ctx.scene_ref.path else ctx.scene_ref.name,
     })
     io.save_png(ctx.out / "contact_sheet.png", contact_sheet(views["images"], views.get("masks")))

