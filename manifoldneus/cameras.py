@@ -15,6 +15,9 @@ Conventions (used everywhere else, restated nowhere else):
 * Exports for other tools (nerfstudio's ``transforms.json``, three.js, Blender) use camera-to-world
   poses with **OpenGL camera axes** (x right, y up, the camera looks along -z):
   :func:`opengl_c2w` and :func:`w2c_from_opengl_c2w` convert; COLMAP's ``cam_from_world`` is ours.
+* glTF files are **+Y up** (its specification; Blender's importer turns that into its +Z up): a
+  mesh written as glTF is first turned by :func:`gltf_from_world`, which takes the scene's
+  vertical (:func:`vertical_from_cameras`) to +Y.
 * Learnable pose corrections are se(3) vectors ``xi = (rho, omega)`` (translation part
   first, then the rotation vector), applied on the left of the world-to-camera pose:
   ``w2c' = exp(xi) @ w2c`` (a perturbation in the camera frame, as in BARF).
@@ -170,6 +173,35 @@ def opengl_c2w(w2c: np.ndarray) -> np.ndarray:
 def w2c_from_opengl_c2w(c2w: np.ndarray) -> np.ndarray:
     """Inverse of :func:`opengl_c2w`: OpenGL camera-to-world [...,3|4,4] -> our w2c [...,4,4]."""
     return invert_pose(to_4x4(c2w) @ OPENGL_FROM_OPENCV)
+
+
+def vertical_from_cameras(w2c: np.ndarray) -> np.ndarray:
+    """The scene's up direction [3] (unit, world frame) from the cameras [N,3|4,4]: the direction
+    most nearly perpendicular to every camera's x axis (photos are taken with the camera level, not
+    rolled: nerfstudio's 'vertical' orientation), signed to agree with the cameras' mean up (-y).
+    Where the x axes barely vary (one camera, or cameras all facing one way) the mean up itself."""
+    R = to_4x4(w2c)[:, :3, :3]
+    x_axes, up_mean = R[:, 0, :], -R[:, 1, :].mean(0)  # camera axes in the world: the rows of R
+    evals, evecs = np.linalg.eigh(x_axes.T @ x_axes / len(R))  # ascending
+    up = evecs[:, 0] if evals[1] > 0.05 else up_mean
+    up = up / max(np.linalg.norm(up), 1e-12)
+    return up if up @ up_mean >= 0 else -up
+
+
+def gltf_from_world(w2c: np.ndarray) -> np.ndarray:
+    """4x4 rotation taking the world to a glTF file's frame: the smallest turn that takes the
+    cameras' vertical (:func:`vertical_from_cameras`) to +Y."""
+    from scipy.spatial.transform import Rotation
+
+    up, y = vertical_from_cameras(w2c), np.array([0.0, 1.0, 0.0])
+    axis, cos = np.cross(up, y), float(np.clip(up @ y, -1.0, 1.0))
+    if np.linalg.norm(axis) < 1e-9:  # already +Y, or exactly -Y: half a turn about x
+        R = np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
+    else:
+        R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.arccos(cos)).as_matrix()
+    M = np.eye(4)
+    M[:3, :3] = R
+    return M
 
 
 def perturb_w2c(w2c: np.ndarray, rot_deg: tuple[float, float], centre_offset: float,

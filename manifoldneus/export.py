@@ -5,6 +5,7 @@
   :func:`read_transforms_json`): camera-to-world poses with OpenGL camera axes
   (:func:`manifoldneus.cameras.opengl_c2w`), intrinsics per frame, image paths relative to the file;
 * the mesh as PLY and as binary glTF (``.glb``: browsers, Blender, three.js), with vertex colours;
+  the glTF turned so that the scene's vertical is its +Y (:func:`manifoldneus.cameras.gltf_from_world`);
 * ``world_from_model.json``: the similarity from the method's unit-sphere frame to the frame of the
   exports (:func:`write_frame`), so that any result of the pipeline can be brought into it.
 
@@ -93,22 +94,28 @@ def read_transforms_json(path: Path) -> dict:
             "size": np.array([[get(f, "w"), get(f, "h")] for f in frames]).reshape(-1, 2).astype(int)}
 
 
-def write_mesh(mesh, folder: Path, stem: str = "mesh") -> None:
-    """``<stem>.ply`` and ``<stem>.glb`` (binary glTF; vertex colours as COLOR_0 when the mesh has them)."""
+def write_mesh(mesh, folder: Path, gltf_from_world: np.ndarray, stem: str = "mesh") -> None:
+    """``<stem>.ply`` (as given) and ``<stem>.glb`` (binary glTF, turned by ``gltf_from_world`` [4,4]
+    so that up is +Y as glTF wants; vertex colours as COLOR_0 when the mesh has them)."""
     folder.mkdir(parents=True, exist_ok=True)
     mesh.export(folder / f"{stem}.ply")
-    mesh.export(folder / f"{stem}.glb", file_type="glb")
+    mesh.copy().apply_transform(gltf_from_world).export(folder / f"{stem}.glb", file_type="glb")
 
 
-def write_frame(path: Path, world_from_model: np.ndarray, frame: str, units: str, how: str) -> dict:
+def write_frame(path: Path, world_from_model: np.ndarray, frame: str, units: str, how: str,
+                gltf_from_world: np.ndarray) -> dict:
     """``world_from_model.json``: the 4x4 similarity ``y = s R x + t`` taking the method's frame
     (the poses and mesh of the ``successors``/``mesh`` stages) to the exports' frame, as a matrix
-    and as (s, R, t), with a word on which frame that is and how the similarity was found."""
+    and as (s, R, t), with a word on which frame that is and how the similarity was found; and the
+    rotation from that frame to the glTF file's (+Y up)."""
     s, R, t = cameras.sim3_from_matrix(world_from_model)
     out = {"world_from_model": np.asarray(world_from_model, np.float64).tolist(), "s": s, "R": R.tolist(),
            "t": t.tolist(), "frame": frame, "units": units, "how": how,
            "convention": "y = s R x + t maps a point of the method's frame to this frame; poses map with "
-                         "manifoldneus.cameras.transform_w2c(w2c, s, R, t)"}
+                         "manifoldneus.cameras.transform_w2c(w2c, s, R, t)",
+           "gltf_from_world": np.asarray(gltf_from_world, np.float64).tolist(),
+           "gltf": "mesh.glb holds gltf_from_world @ the points of this frame: the cameras' vertical is its +Y "
+                   "(glTF's up); mesh.ply, colmap/ and transforms.json are in this frame"}
     Path(path).write_text(json.dumps(out, indent=1) + "\n")
     return out
 

@@ -3,7 +3,8 @@
 Writes, for the views with a final pose: the COLMAP text model (``colmap/``), nerfstudio's
 ``transforms.json`` (OpenGL camera-to-world, intrinsics per frame), the images they name
 (``images/<view>.png``, the ingested images that K refers to; ``masks/`` where the scene has masks),
-and the final mesh as ``mesh.ply`` and ``mesh.glb`` with vertex colours from the final field.
+and the final mesh as ``mesh.ply`` and ``mesh.glb`` with vertex colours from the final field (the
+glTF turned so that the cameras' vertical is +Y, glTF's up; the turn is in ``world_from_model.json``).
 
 Frame (``export.frame``): ``input`` is the world of the input's own cameras where the scene has
 them (DTU's ``cameras*.npz`` in mm, a COLMAP model's world, the synthetic scene's frame): the
@@ -89,7 +90,8 @@ def run(ctx) -> None:
         colours = evaluation.field_vertex_colours(trainer, np.array(mesh.vertices), np.array(mesh.vertex_normals))
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=colours)
     mesh.apply_transform(M)
-    export.write_mesh(mesh, ctx.out)
+    gltf_from_world = cameras.gltf_from_world(w2c_world[valid])
+    export.write_mesh(mesh, ctx.out, gltf_from_world)
 
     h, w = views.images.shape[1:3]
     export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c_world, w, h, valid=placed)
@@ -103,7 +105,7 @@ def run(ctx) -> None:
             (ctx.out / folder).mkdir()
             for i in np.flatnonzero(placed):
                 io.save_png(ctx.out / folder / export.image_filename(views.names[i]), stack[i])
-    export.write_frame(ctx.out / export.FRAME, M, frame, units, how)
+    export.write_frame(ctx.out / export.FRAME, M, frame, units, how, gltf_from_world)
     ctx.metrics.update(frame=frame, units=units, scale=s, views_exported=int(placed.sum()),
                        vertices=int(len(mesh.vertices)), faces=int(len(mesh.faces)),
                        vertex_colours=bool(p.vertex_colours and len(mesh.faces)))

@@ -118,9 +118,27 @@ def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
     np.testing.assert_allclose(ply.vertices, cameras.transform_points(frame["world_from_model"], model.vertices),
                                atol=1e-5)
     assert len(glb.faces) == len(ply.faces) == len(model.faces) > 0
-    np.testing.assert_allclose(np.sort(glb.vertices, 0), np.sort(ply.vertices, 0), atol=1e-5)
+    # glTF is +Y up: the synthetic world's up (+Z, the cameras' vertical) is the file's +Y
+    gltf_from_world = np.asarray(frame["gltf_from_world"])
+    np.testing.assert_allclose(gltf_from_world[:3, :3] @ [0.0, 0.0, 1.0], [0.0, 1.0, 0.0], atol=0.02)
+    np.testing.assert_allclose(np.sort(glb.vertices, 0),
+                               np.sort(cameras.transform_points(gltf_from_world, ply.vertices), 0), atol=1e-5)
     colours = np.asarray(ply.visual.vertex_colors)[:, :3]
     assert ply.visual.kind == "vertex" and colours.std() > 0  # not one flat colour
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 35.0, 80.0])
+def test_the_vertical_is_found_from_level_cameras_looking_down_at_any_angle(tilt_deg):
+    """Cameras on a ring above the object, held level (no roll), looking down by various amounts: the
+    vertical is perpendicular to every camera's x axis, not their tilted mean up; the glTF turn takes
+    it to +Y."""
+    up = cameras.rotvec_to_matrix([0.4, -0.3, 0.2])[0] @ [0.0, 0.0, 1.0]  # a world whose up is no axis
+    a, b = np.linalg.svd(np.eye(3) - np.outer(up, up))[0][:, :2].T  # the horizontal plane
+    h = np.tan(np.radians(tilt_deg))
+    eyes = [3.0 * (np.cos(t) * a + np.sin(t) * b + h * up) for t in np.linspace(0, 1.5 * np.pi, 9)]
+    w2c = np.stack([cameras.look_at_w2c(e, np.zeros(3), up) for e in eyes])
+    np.testing.assert_allclose(cameras.vertical_from_cameras(w2c), up, atol=1e-9)
+    np.testing.assert_allclose(cameras.gltf_from_world(w2c)[:3, :3] @ up, [0.0, 1.0, 0.0], atol=1e-9)
 
 
 def test_the_export_frame_undoes_the_alignment_and_the_normalisation(tmp_path):
