@@ -1,9 +1,11 @@
 """Exports of the method's result in other tools' formats.
 
-* COLMAP text model (:func:`write_colmap_text`; pycolmap, COLMAP, most NeRF/GS tools read it);
+* COLMAP text model (:func:`write_colmap_text`; pycolmap, COLMAP, most NeRF/GS tools read it): one
+  camera per physical camera, the SfM points as ``points3D``;
 * nerfstudio's ``transforms.json`` (:func:`write_transforms_json`, read back by
   :func:`read_transforms_json`): camera-to-world poses with OpenGL camera axes
-  (:func:`manifoldneus.cameras.opengl_c2w`), intrinsics per frame, image paths relative to the file;
+  (:func:`manifoldneus.cameras.opengl_c2w`), intrinsics at the top level when shared (else per
+  frame), image paths relative to the file, ``ply_file_path`` the SfM points (:func:`write_points_ply`);
 * the mesh as PLY and as binary glTF (``.glb``: browsers, Blender, three.js), with vertex colours;
   the glTF turned so that the scene's vertical is its +Y (:func:`manifoldneus.cameras.gltf_from_world`);
 * ``world_from_model.json``: the similarity from the method's unit-sphere frame to the frame of the
@@ -29,47 +31,101 @@ def image_filename(name: str) -> str:
     return f"{name}.png"
 
 
-def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None) -> None:
-    """COLMAP text model (PINHOLE camera per view, poses world-to-camera; no 3D points)."""
+def shared_cameras(K: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Camera index [N] per view: views whose intrinsics agree (to 1e-9 relative) share one camera, as
+    the photos of one physical camera do; numbered in order of first use among the ``valid`` views."""
+    index, reps = np.full(len(K), -1), []
+    for i in np.flatnonzero(valid):
+        match = next((c for c, r in enumerate(reps) if np.allclose(K[i], K[r], rtol=1e-9, atol=0.0)), None)
+        if match is None:
+            reps.append(i)
+            match = len(reps) - 1
+        index[i] = match
+    return index
+
+
+def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None,
+                      points: np.ndarray | None = None, colours: np.ndarray | None = None) -> None:
+    """COLMAP text model: a PINHOLE camera per set of equal intrinsics (:func:`shared_cameras`), poses
+    world-to-camera, and ``points`` [P,3] with ``colours`` [P,3] uint8 as 3D points (without tracks)."""
     from scipy.spatial.transform import Rotation
 
     folder.mkdir(parents=True, exist_ok=True)
     valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
+    camera_of = shared_cameras(K, valid)
     cams = ["# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
     imgs = ["# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "# POINTS2D[] (empty)"]
     for i, name in enumerate(names):
         if not valid[i]:
             continue
-        k = K[i]
-        cams.append(f"{i + 1} PINHOLE {width} {height} {k[0, 0]:.17g} {k[1, 1]:.17g} {k[0, 2]:.17g} {k[1, 2]:.17g}")
+        if camera_of[i] == len(cams) - 1:  # a camera's first view
+            k = K[i]
+            cams.append(f"{camera_of[i] + 1} PINHOLE {width} {height} {k[0, 0]:.17g} {k[1, 1]:.17g} {k[0, 2]:.17g} "
+                        f"{k[1, 2]:.17g}")
         x, y, z, w = Rotation.from_matrix(w2c[i][:3, :3]).as_quat()
         t = w2c[i][:3, 3]
-        imgs.append(f"{i + 1} {w:.17g} {x:.17g} {y:.17g} {z:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} {i + 1} "
-                    f"{image_filename(name)}")
+        imgs.append(f"{i + 1} {w:.17g} {x:.17g} {y:.17g} {z:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} "
+                    f"{camera_of[i] + 1} {image_filename(name)}")
         imgs.append("")
+    pts = ["# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] (empty: the points of the SfM that initialised the poses)"]
+    for j, (X, c) in enumerate(zip(np.zeros((0, 3)) if points is None else points,
+                                   np.zeros((0, 3), np.uint8) if colours is None else colours)):
+        pts.append(f"{j + 1} {X[0]:.9g} {X[1]:.9g} {X[2]:.9g} {int(c[0])} {int(c[1])} {int(c[2])} 0")
     (folder / "cameras.txt").write_text("\n".join(cams) + "\n")
     (folder / "images.txt").write_text("\n".join(imgs) + "\n")
-    (folder / "points3D.txt").write_text("# no points: poses only\n")
+    (folder / "points3D.txt").write_text("\n".join(pts) + "\n")
+
+
+def point_colours(points: np.ndarray, images: np.ndarray, K: np.ndarray, w2c: np.ndarray, views) -> np.ndarray:
+    """Colour [P,3] uint8 of each point: the median over the ``views`` whose image it falls in (grey
+    where none)."""
+    samples = np.full((len(views), len(points), 3), np.nan)
+    H, W = images.shape[1:3]
+    for k, i in enumerate(views):
+        xc = points @ w2c[i][:3, :3].T + w2c[i][:3, 3]  # [P,3]
+        uv = (xc @ K[i].T)[:, :2] / np.clip(xc[:, 2:], 1e-9, None)
+        ok = (xc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        samples[k, ok] = images[i][uv[ok, 1].astype(int), uv[ok, 0].astype(int), :3]
+    scale = 255.0 if images.dtype != np.uint8 and images.max() <= 1.0 else 1.0
+    with np.errstate(all="ignore"):
+        median = np.nanmedian(samples, 0) * scale if len(views) else np.full((len(points), 3), np.nan)
+    return np.nan_to_num(median, nan=128.0).clip(0, 255).round().astype(np.uint8)
+
+
+def write_points_ply(path: Path, points: np.ndarray, colours: np.ndarray) -> None:
+    """A coloured point cloud (``ply_file_path`` of transforms.json: splatfacto starts from it)."""
+    import trimesh
+
+    trimesh.PointCloud(points, colors=colours).export(path)
 
 
 def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None,
-                          image_dir: str = "images", mask_dir: str | None = None) -> dict:
+                          image_dir: str = "images", mask_dir: str | None = None,
+                          ply_file_path: str | None = None) -> dict:
     """nerfstudio's ``transforms.json`` (its ``nerfstudio-data`` layout) for the ``valid`` views:
-    per frame ``file_path`` (relative to the file), pinhole intrinsics ``fl_x fl_y cx cy w h`` in
-    pixels (pixel centres at +0.5, as COLMAP and nerfstudio) and ``transform_matrix``, the
-    camera-to-world pose with OpenGL camera axes. Returns what it wrote."""
+    per frame ``file_path`` (relative to the file) and ``transform_matrix``, the camera-to-world pose
+    with OpenGL camera axes; pinhole intrinsics ``fl_x fl_y cx cy w h`` in pixels (pixel centres at
+    +0.5, as COLMAP and nerfstudio) at the top level when every view shares them, else per frame;
+    ``ply_file_path`` (relative) names the initial point cloud. Returns what it wrote."""
     valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
     c2w = cameras.opengl_c2w(w2c)  # [N,4,4]
+
+    def intrinsics(k) -> dict:
+        return {"fl_x": float(k[0, 0]), "fl_y": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
+                "w": int(width), "h": int(height)}
+
+    shared = valid.any() and shared_cameras(K, valid).max() == 0
     frames = []
     for i in np.flatnonzero(valid):
-        k = K[i]
-        frame = {"file_path": f"{image_dir}/{image_filename(names[i])}",
-                 "fl_x": float(k[0, 0]), "fl_y": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
-                 "w": int(width), "h": int(height), "transform_matrix": c2w[i].tolist()}
+        frame = {"file_path": f"{image_dir}/{image_filename(names[i])}", **({} if shared else intrinsics(K[i])),
+                 "transform_matrix": c2w[i].tolist()}
         if mask_dir is not None:
             frame["mask_path"] = f"{mask_dir}/{image_filename(names[i])}"
         frames.append(frame)
-    out = {"camera_model": "OPENCV", "frames": frames}
+    out = {"camera_model": "OPENCV", **(intrinsics(K[np.flatnonzero(valid)[0]]) if shared else {})}
+    if ply_file_path is not None:
+        out["ply_file_path"] = ply_file_path
+    out["frames"] = frames
     Path(path).write_text(json.dumps(out, indent=1) + "\n")
     return out
 

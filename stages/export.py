@@ -1,7 +1,9 @@
 """export: the result in other tools' formats, in the input's world frame.
 
-Writes, for the views with a final pose: the COLMAP text model (``colmap/``), nerfstudio's
-``transforms.json`` (OpenGL camera-to-world, intrinsics per frame), the images they name
+Writes, for the views with a final pose: the COLMAP text model (``colmap/``: one camera per set of
+shared intrinsics, the anchors' SfM points as ``points3D``), nerfstudio's ``transforms.json`` (OpenGL
+camera-to-world, shared intrinsics at the top level, ``ply_file_path`` = ``sparse_points.ply``, those
+points coloured from the images), the images they name
 (``images/<view>.png``, the ingested images that K refers to; ``masks/`` where the scene has masks),
 and the final mesh as ``mesh.ply`` and ``mesh.glb`` with vertex colours from the final field (the
 glTF turned so that the cameras' vertical is +Y, glTF's up; the turn is in ``world_from_model.json``).
@@ -35,7 +37,7 @@ class Params:
     vertex_colours: bool = param(True, "Colour the mesh's vertices with the final field's colour seen head-on")
 
 
-UPSTREAM = ("ingest", "ground_truth", "successors", "mesh")
+UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "mesh")
 SECTIONS = ("export", "run")
 OUTPUTS = ("colmap", export.TRANSFORMS, "mesh.ply", "mesh.glb", export.FRAME)
 
@@ -94,10 +96,19 @@ def run(ctx) -> None:
     export.write_mesh(mesh, ctx.out, gltf_from_world)
 
     h, w = views.images.shape[1:3]
-    export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c_world, w, h, valid=placed)
+    # the SfM points that initialised the anchors (the method's frame), as COLMAP's points3D and splatfacto's start
+    points = io.load_arrays(ctx.input("anchors") / "initial_poses.zarr", ["object_points"])["object_points"]
+    points = cameras.transform_points(M, np.asarray(points, np.float64).reshape(-1, 3))
+    colours = export.point_colours(points, views.images, views.K, w2c_world, np.flatnonzero(placed))
+    ply = None
+    if len(points):
+        ply = "sparse_points.ply"
+        export.write_points_ply(ctx.out / ply, points, colours)
+    export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c_world, w, h, valid=placed, points=points,
+                             colours=colours)
     mask_dir = "masks" if p.images and views.masks is not None else None
     export.write_transforms_json(ctx.out / export.TRANSFORMS, views.names, views.K, w2c_world, w, h, valid=placed,
-                                 mask_dir=mask_dir)
+                                 mask_dir=mask_dir, ply_file_path=ply)
     if p.images:
         for folder, stack in (("images", views.images), (mask_dir, views.masks)):
             if folder is None:
@@ -106,6 +117,6 @@ def run(ctx) -> None:
             for i in np.flatnonzero(placed):
                 io.save_png(ctx.out / folder / export.image_filename(views.names[i]), stack[i])
     export.write_frame(ctx.out / export.FRAME, M, frame, units, how, gltf_from_world)
-    ctx.metrics.update(frame=frame, units=units, scale=s, views_exported=int(placed.sum()),
+    ctx.metrics.update(frame=frame, units=units, scale=s, views_exported=int(placed.sum()), sfm_points=len(points),
                        vertices=int(len(mesh.vertices)), faces=int(len(mesh.faces)),
                        vertex_colours=bool(p.vertex_colours and len(mesh.faces)))

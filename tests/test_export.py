@@ -65,20 +65,34 @@ def test_transforms_json_round_trip_and_its_opengl_convention(tmp_path):
     np.testing.assert_allclose(c2w[:3, 1], -w2c[0, 1, :3], atol=1e-12)
 
 
-def test_a_reader_takes_shared_intrinsics_from_the_top_level(tmp_path):
+def test_shared_intrinsics_are_written_once_at_the_top_level(tmp_path):
     K, w2c = random_cameras(2, seed=2)
     path = tmp_path / "transforms.json"
-    written = export.write_transforms_json(path, ["a", "b"], K[[0, 0]], w2c, 192, 128)
-    for frame in written["frames"]:
-        for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
-            written[key] = frame.pop(key)
-    path.write_text(json.dumps(written))
+    written = export.write_transforms_json(path, ["a", "b"], K[[0, 0]], w2c, 192, 128, ply_file_path="points.ply")
+    assert written["fl_x"] == K[0, 0, 0] and written["ply_file_path"] == "points.ply"
+    assert not any("fl_x" in frame for frame in written["frames"])
     back = export.read_transforms_json(path)
     np.testing.assert_allclose(back["K"], K[[0, 0]], atol=1e-12)
+    assert "fl_x" in export.write_transforms_json(path, ["a", "b"], K, w2c, 192, 128)["frames"][0]  # not shared
     del written["fl_x"]
     path.write_text(json.dumps(written))
     with pytest.raises(ValueError, match="has no 'fl_x'"):
         export.read_transforms_json(path)
+
+
+def test_colmap_model_has_one_camera_per_set_of_intrinsics_and_the_points(tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    K, w2c = random_cameras(4)
+    K = K[[0, 1, 0, 0]]  # views 0, 2, 3 from one camera
+    points = np.random.default_rng(0).normal(size=(5, 3))
+    colours = np.arange(15, dtype=np.uint8).reshape(5, 3)
+    export.write_colmap_text(tmp_path, ["a", "b", "c", "d"], K, w2c, 192, 128, points=points, colours=colours)
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    assert len(rec.cameras) == 2
+    assert len({im.camera_id for im in rec.images.values() if im.name != "b.png"}) == 1
+    back = sorted((tuple(p.xyz), tuple(p.color)) for p in rec.points3D.values())
+    assert np.allclose([b[0] for b in back], sorted(map(tuple, points)), atol=1e-6)
+    assert sorted(b[1] for b in back) == sorted(map(tuple, colours.tolist()))
 
 
 def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
@@ -125,6 +139,19 @@ def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
                                np.sort(cameras.transform_points(gltf_from_world, ply.vertices), 0), atol=1e-5)
     colours = np.asarray(ply.visual.vertex_colors)[:, :3]
     assert ply.visual.kind == "vertex" and colours.std() > 0  # not one flat colour
+
+    # the SfM points: COLMAP's points3D and transforms.json's ply_file_path, in the same frame
+    import pycolmap
+
+    sfm = io.load_arrays(versions["anchors"] / "initial_poses.zarr", ["object_points"])["object_points"]
+    meta = json.loads((out / export.TRANSFORMS).read_text())
+    assert len(sfm) > 20 and meta["ply_file_path"] == "sparse_points.ply" and "fl_x" in meta  # one camera
+    cloud = trimesh.load(out / meta["ply_file_path"])
+    np.testing.assert_allclose(cloud.vertices, cameras.transform_points(frame["world_from_model"], sfm), atol=1e-5)
+    rec = pycolmap.Reconstruction(str(out / "colmap"))
+    assert len(rec.points3D) == len(sfm) and len(rec.cameras) == 1
+    # coloured from the photos, not the grey of points no view sees
+    assert np.asarray(cloud.colors)[:, :3].std() > 5
 
 
 @pytest.mark.parametrize("tilt_deg", [0.0, 35.0, 80.0])
