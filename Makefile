@@ -54,7 +54,7 @@ results: setup
 	$(PY) bench/results_md.py
 
 report: setup
-	$(PY) bench/report.py --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) $(ARGS)
+	$(PY) bench/report.py --scene $(SCENE) $(ARGS)
 
 # the supplement's experiments (Tables A3-A6, Fig. A7, Sec. 4.4 sparse views) on the pipeline's cache
 sweep: setup

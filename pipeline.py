@@ -34,6 +34,7 @@ import errno
 import fcntl
 import hashlib
 import importlib
+import importlib.metadata
 import json
 import logging
 import os
@@ -62,7 +63,7 @@ import yaml  # noqa: E402
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
-from manifoldneus import config, executor  # noqa: E402
+from manifoldneus import __version__, config, executor  # noqa: E402
 from manifoldneus.config import ParamError  # noqa: E402
 from manifoldneus.scenes import SceneError, resolve_scene  # noqa: E402
 
@@ -1167,6 +1168,8 @@ def _folder_size(path: Path) -> int:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pipeline.py", description=__doc__.split("\n")[0])
     p.add_argument("--debug", action="store_true", help="show the traceback of a failure")
+    p.add_argument("--version", action="version", version=f"manifoldneus {__version__} (torch "
+                   f"{importlib.metadata.version('torch')}, Python {sys.version.split()[0]})")
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(sp, params=True, scenes=False):
@@ -1174,12 +1177,17 @@ def _parser() -> argparse.ArgumentParser:
                         help="scene name (synthetic, synthetic-<seed>, scan24, ...) or a folder"
                              + ("; repeat it to run several scenes (default synthetic)" if scenes else ""))
         sp.add_argument("--data-root", type=Path, default=None, help="data root (default $MANIFOLDNEUS_DATA or ../shared/data)")
-        sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS)
+        sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS,
+                        help="the artifacts folder: every stage's versions, per scene (default ./artifacts)")
         if params:
-            sp.add_argument("--params", type=Path, default=DEFAULT_PARAMS)
-            sp.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
+            sp.add_argument("--params", type=Path, default=DEFAULT_PARAMS,
+                            help="the parameter file (default ./params.yaml)")
+            sp.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                            help="override one parameter for this command (repeat it for several); "
+                                 "docs/USAGE.md and `pipeline.py params-diff STAGE` name the keys")
             sp.add_argument("--profile", default=None, help="fast | paper (default: params.yaml's `profile`)")
-            sp.add_argument("--preset", default=None, help="a named preset from params.yaml (e.g. neus-barf)")
+            sp.add_argument("--preset", default=None, help="a named preset from params.yaml (e.g. neus-barf); "
+                                                           "its versions keep their own `current@PRESET` pointers")
 
     sp = sub.add_parser("run", help="bring stages up to date")
     common(sp, scenes=True)
@@ -1192,17 +1200,17 @@ def _parser() -> argparse.ArgumentParser:
     common(sp)
     sp = sub.add_parser("show", help="what a stage's current artifact holds")
     common(sp, params=False)
-    sp.add_argument("--preset", default=None)
-    sp.add_argument("stage")
+    sp.add_argument("--preset", default=None, help="the versions of a named preset of params.yaml (its `current@PRESET`)")
+    sp.add_argument("stage", help="a stage name (pipeline.py status lists them)")
     sp = sub.add_parser("params-diff", help="what changed since a stage's current version")
     common(sp)
-    sp.add_argument("stage")
+    sp.add_argument("stage", help="a stage name (pipeline.py status lists them)")
     sp = sub.add_parser("verify", help="re-hash the current versions' files against their manifests")
     common(sp, params=False)
-    sp.add_argument("--preset", default=None)
+    sp.add_argument("--preset", default=None, help="the versions of a named preset of params.yaml (its `current@PRESET`)")
     sp = sub.add_parser("view", help="write the run's viewer page (mesh and cameras in a browser) and print its path")
     common(sp, params=False)
-    sp.add_argument("--preset", default=None)
+    sp.add_argument("--preset", default=None, help="the versions of a named preset of params.yaml (its `current@PRESET`)")
     sp.add_argument("--out", type=Path, default=None, help="the HTML file (default: <artifacts>/<scene>/viewer/viewer.html)")
     sp.add_argument("--max-faces", type=int, default=None, help="decimate the mesh to at most this many triangles")
     sp.add_argument("--open", action="store_true", help="also open the page in the default browser")

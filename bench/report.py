@@ -580,6 +580,9 @@ def scene_dir_name(scene: str) -> str:
 def build_report(scene: str, artifacts: Path = pipeline.DEFAULT_ARTIFACTS, out: Path | None = None) -> Path:
     """Write ``report.md`` (+ PNGs, ``report.json``) for ``scene``; returns the page's path."""
     name = scene_dir_name(scene)
+    if not (Path(artifacts) / name / "ingest").is_dir():
+        raise SystemExit(f"error: no artifacts of scene {scene!r} in {artifacts}: run `make all SCENE={scene}` "
+                         f"(or `python pipeline.py run --scene {scene}`) first; the report never trains")
     out = Path(out) if out is not None else Path(artifacts) / name / "report"
     out.mkdir(parents=True, exist_ok=True)
     systems = {system: Pointers(artifacts, name, preset) for system, preset in SYSTEMS.items()}
@@ -619,8 +622,8 @@ def build_report(scene: str, artifacts: Path = pipeline.DEFAULT_ARTIFACTS, out: 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scene", default="scan24")
-    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
+    ap.add_argument("--scene", default="synthetic", help="the scene (default synthetic, as pipeline.py run)")
+    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS, help="the artifacts folder")
     ap.add_argument("--out", type=Path, default=None, help="output folder (default: <artifacts>/<scene>/report)")
     args = ap.parse_args(argv)
     path = build_report(args.scene, args.artifacts, args.out)

@@ -6,6 +6,7 @@ import shutil
 
 import pytest
 
+import manifoldneus
 import pipeline
 from manifoldneus.config import ParamError
 from manifoldneus.scenes import SceneError
@@ -622,3 +623,18 @@ def test_a_full_disk_is_one_line_naming_stage_and_file(artifacts, monkeypatch, c
     stage_dir = artifacts / "synthetic" / "ingest"
     assert [p.name.startswith(".failed-") for p in stage_dir.iterdir()] == [True]
 
+
+
+def test_every_option_of_every_command_says_what_it_does(capsys):
+    import argparse
+
+    parser = pipeline._parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert {"run", "status", "gc", "view"} <= set(commands)
+    for name, sub in [("", parser), *commands.items()]:
+        silent = [a.option_strings or a.dest for a in sub._actions
+                  if not isinstance(a, argparse._SubParsersAction) and not a.help and a.dest != "stage"]
+        assert not silent, f"pipeline.py {name}: options without help {silent}"
+    with pytest.raises(SystemExit) as e:
+        pipeline.main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith(f"manifoldneus {manifoldneus.__version__} (torch ")

@@ -104,3 +104,9 @@ def test_rotation_error_per_view_from_placement_to_the_last_round(built_report):
     # the last column is the last round's per-view errors: its mean is that round's row above
     mean = float(re.search(rf"^\| ManifoldNeuS \| {rounds[-1]} \| \d+ \| ([\d.]+) \|", text, re.M).group(1))
     assert np.mean(last) == pytest.approx(mean, abs=2e-3)
+
+
+def test_a_scene_never_run_is_an_error_saying_what_to_run(tmp_path):
+    with pytest.raises(SystemExit, match=r"no artifacts of scene 'synthetic' .* run `make all SCENE=synthetic`"):
+        report.main(["--artifacts", str(tmp_path / "artifacts")])
+    assert not (tmp_path / "artifacts").exists()  # nothing written
