@@ -851,15 +851,17 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
         geo = ev.get("geometry", {})
         if geo.get("chamfer_units") is not None:
             out.append(f"surface: Chamfer {geo['chamfer_units']:.3g} {geo.get('units', '')} to {geo.get('reference', 'the reference')}")
-    if "mesh" in report:
-        mesh_dir = store.version_dir("mesh", version["mesh"])
-        out += [f"mesh:    {mesh_dir / 'mesh.ply'}", f"cameras: {mesh_dir / 'colmap'} (COLMAP text model)"]
-    if "export" in report and store.current("export"):
+    if "export" in report and store.current("export"):  # first: what a user takes away, in the input's frame
         export_dir = store.version_dir("export", store.current("export"))
         frame = json.loads((export_dir / "world_from_model.json").read_text())
-        out.append(f"exports: {export_dir} (transforms.json, colmap/, mesh.glb, mesh.ply; {frame['frame']} frame, "
-                   f"{frame['units']})")
+        where = "the input's world" if frame["frame"] == "input" else "the method's unit-sphere frame"
+        out.append(f"result:  {export_dir} (transforms.json, colmap/, mesh.glb, mesh.ply, sparse_points.ply; "
+                   f"{where}, {frame['units']})")
         out.append(f"viewer:  python pipeline.py view --scene {scene_name}{f' --preset {preset}' if preset else ''}")
+    if "mesh" in report:
+        mesh_dir = store.version_dir("mesh", version["mesh"])
+        out += [f"mesh:    {mesh_dir / 'mesh.ply'} (the method's unit-sphere frame, no colours)",
+                f"cameras: {mesh_dir / 'colmap'} (COLMAP text model, the method's frame)"]
     if "evaluate" in report:
         out.append(f"report:  make report SCENE={scene_name}")
     return "\n".join(out)

@@ -84,8 +84,12 @@ def test_the_summary_says_what_the_run_found_and_where(tiny_run):
     focal = ev["intrinsics"]["final"]["focal_px"]
     assert f"camera (calibrated): focal {focal:.1f} px, principal point (64.0, 64.0); ground truth {focal:.1f} px, " \
            "0.00 % off" in text  # calibrated: nothing estimated
+    paths = [line.split()[0] for line in text.splitlines() if line.split()[0] in ("result:", "mesh:", "cameras:")]
+    assert paths == ["result:", "mesh:", "cameras:"]  # the exports first, each path with its frame
+    result = next(line for line in text.splitlines() if line.startswith("result:"))
+    assert "the input's world" in result and (Path(result.split()[1]) / "mesh.glb").is_file()
     mesh = next(line for line in text.splitlines() if line.startswith("mesh:"))
-    assert Path(mesh.split(maxsplit=1)[1]).is_file()
+    assert Path(mesh.split()[1]).is_file() and "the method's unit-sphere frame" in mesh
     final = artifacts_round(artifacts, report, "successors")
     held = io.load_json(artifacts / "synthetic" / "schedule" / report.fingerprints["schedule"] / "schedule.json")[
         "held_out_views"]
