@@ -29,6 +29,7 @@ from manifoldneus import cameras, io
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # compared lower-case: .JPG, .Jpeg too
+VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
 HOW_TO_GET_DTU = (
     "DTU scan24 ships in ../shared/data/dtu/scan24 (MonoSDF layout) and ../shared/data/dtu/scan24_idr "
     "(IDR layout) beside the project; elsewhere, download the MonoSDF or NeuS preprocessed DTU release and "
@@ -43,7 +44,7 @@ class SceneError(ValueError):
 @dataclass(frozen=True)
 class SceneRef:
     name: str  # used for the artifacts folder
-    kind: str  # "synthetic" | "folder"
+    kind: str  # "synthetic" | "folder" | "video" (a video file; its frames are the views)
     path: Path | None = None
     seed: int = 0
 
@@ -63,8 +64,8 @@ def folder_scene_name(path: Path, root: Path) -> str:
 
 
 def resolve_scene(name: str, data_root: Path | None = None) -> SceneRef:
-    """``synthetic[-seed]``, a folder path, or a name under the data root (``<root>/<name>``,
-    ``<root>/dtu/<name>``)."""
+    """``synthetic[-seed]``, a folder path, a video file, or a name under the data root
+    (``<root>/<name>``, ``<root>/dtu/<name>``)."""
     m = re.fullmatch(r"synthetic(?:-(\d+))?", name)
     if m:
         return SceneRef(name=name, kind="synthetic", seed=int(m.group(1) or 0))
@@ -74,6 +75,9 @@ def resolve_scene(name: str, data_root: Path | None = None) -> SceneRef:
     for c in candidates:
         if c.is_dir():
             return SceneRef(name=folder_scene_name(c.resolve(), root), kind="folder", path=c.resolve())
+    if Path(name).is_file() and Path(name).suffix.lower() in VIDEO_EXTENSIONS:
+        path = Path(name).resolve()
+        return SceneRef(name=folder_scene_name(path.with_suffix(""), root), kind="video", path=path)
     if Path(name).is_file():
         what = "an image" if Path(name).suffix.lower() in IMAGE_EXTENSIONS else "a file"
         raise SceneError(f"--scene {name} is {what}, not a folder: a scene is the folder that holds the photos; "
@@ -105,6 +109,8 @@ def input_signature(ref: SceneRef) -> str:
     remembered while the file's size, times and inode stay)."""
     if ref.kind == "synthetic":
         return f"synthetic-{ref.seed}"
+    if ref.kind == "video":
+        return f"video-{io.file_digests([ref.path])[0][:16]}"
     files = [p for p in sorted(ref.path.rglob("*")) if p.is_file()]
     h = hashlib.sha256()
     for p, digest in zip(files, io.file_digests(files)):
@@ -188,8 +194,46 @@ def _downscale(views: dict, factor: int) -> dict:
 
 
 def layout_has_cameras(layout: str) -> bool:
-    """Whether a layout comes with cameras (ground truth for scoring): all but a plain photo folder."""
-    return layout != "images"
+    """Whether a layout comes with cameras (ground truth for scoring): all but photos and videos."""
+    return layout not in ("images", "video")
+
+
+def video_frames(path: Path, n_frames: int) -> dict:
+    """Views from a video, as ``ns-process-data`` takes them: the video cut into ``n_frames`` equal
+    spans of frames, from each the sharpest frame (variance of the Laplacian of its grey image at
+    most 480 px wide: blur from motion or focus lowers it). Names ``frame_<index>``; intrinsics
+    COLMAP's guess for an uncalibrated camera (self-calibration refines them)."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
+    if total <= 0:
+        cap.release()
+        raise SceneError(f"{path}: not a video OpenCV can read (no frames); convert it with "
+                         f"`ffmpeg -i {shlex.quote(str(path))} clip.mp4` or extract its frames into a folder")
+    spans = np.linspace(0, total, min(n_frames, total) + 1).astype(int)  # span k: frames [spans[k], spans[k+1])
+    best: dict[int, tuple[float, int, np.ndarray]] = {}
+    index = 0
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        span = int(np.searchsorted(spans, index, side="right")) - 1
+        grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+        scale = min(1.0, 480.0 / grey.shape[1])
+        small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else grey
+        sharpness = float(cv2.Laplacian(small, cv2.CV_32F).var())
+        if span not in best or sharpness > best[span][0]:
+            best[span] = (sharpness, index, frame)
+        index += 1
+    cap.release()
+    if len(best) < 1:
+        raise SceneError(f"{path}: no frame could be decoded")
+    picked = [best[k] for k in sorted(best)]
+    images = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2RGB) for _, _, f in picked])
+    h, w = images.shape[1:3]
+    return {"images": images, "K": np.repeat(default_intrinsics(h, w)[None], len(picked), 0),
+            "names": [f"frame_{i:06d}" for _, i, _ in picked], "intrinsics_source": "default"}
 
 
 # Arrays and lists with one entry per view, in view order: what a view subset must slice.
@@ -217,6 +261,8 @@ def read_views(ref: SceneRef, p) -> dict:
         s = synthetic.make_scene(seed=ref.seed, n_views=p.synthetic_views, resolution=p.synthetic_resolution,
                                 floor=p.synthetic_floor)
         views = {"images": s.images, "K": s.K, "masks": s.masks, "names": list(s.names), "layout": "synthetic"}
+    elif ref.kind == "video":
+        views = {**video_frames(ref.path, p.video_frames), "layout": "video"}
     else:
         layout = detect_layout(ref.path) if p.layout == "auto" else p.layout
         reader = {"monosdf": _monosdf_views, "idr": _idr_views, "colmap": _colmap_views, "images": _plain_views}[layout]
@@ -413,6 +459,8 @@ def read_ground_truth(ref: SceneRef, p) -> dict | None:
 
 
 def _ground_truth_all_views(ref: SceneRef, p) -> dict | None:
+    if ref.kind == "video":
+        return None
     if ref.kind == "synthetic":
         from manifoldneus import synthetic
 

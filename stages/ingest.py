@@ -34,6 +34,8 @@ class Params:
                                   "self-calibration against the layout's own K")
     monosdf_original_size: list[int] = param([1600, 1200], "MonoSDF: size of the original images that "
                                              "world_mat projects into (centre-cropped to a square, resized)")
+    video_frames: int = param(40, "A video (--scene clip.mp4): how many frames become views, the sharpest of each "
+                              "of as many equal spans of the video", lo=3)
     synthetic_views: int = param(49, "Synthetic scene: number of views", lo=2, hi=400)
     synthetic_resolution: int = param(192, "Synthetic scene: image side in pixels", lo=32, hi=1024)
     synthetic_floor: bool = param(False, "Synthetic scene: the object stands on a textured floor (background, not in "

@@ -337,3 +337,33 @@ def test_own_photos_hold_no_view_out_unless_asked(tmp_path, artifacts):
         assert sched["held_out_views"] == held
         unscheduled = sorted(set(held) | set(sched["excluded_views"]))  # excluded: not co-visible with the rest
         assert len(unscheduled) < 6 and [v["view"] for v in sched["views"] if v["round"] < 0] == unscheduled
+
+
+def test_a_video_becomes_its_sharpest_frames(tmp_path, artifacts):
+    """--scene clip.mp4: the video cut into ingest.video_frames spans, the sharpest frame of each (a
+    blurred copy beside every sharp frame is never taken); no ground truth, every frame scheduled."""
+    import cv2
+
+    from manifoldneus import synthetic
+
+    scene = synthetic.make_scene(seed=2, n_views=10, resolution=96)
+    clip = tmp_path / "turntable.mp4"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), 10, (96, 96))
+    for im in scene.images:  # per view: blurred, sharp, blurred
+        bgr = cv2.cvtColor(im, cv2.COLOR_RGB2BGR)
+        for frame in (cv2.GaussianBlur(bgr, (9, 9), 3), bgr, cv2.GaussianBlur(bgr, (9, 9), 3)):
+            writer.write(frame)
+    writer.release()
+    ref = resolve_scene(str(clip))
+    assert ref.kind == "video" and ref.name.startswith("turntable-")
+    pipeline.run(str(clip), until="ground_truth", overrides=["ingest.video_frames=10"], artifacts=artifacts)
+    ingest = artifacts / ref.name / "ingest" / "current"
+    meta = io.load_json(ingest / "views.json")
+    assert meta["layout"] == "video" and not meta["has_cameras"]
+    assert meta["names"] == [f"frame_{3 * i + 1:06d}" for i in range(10)]  # the sharp one of each view's three
+    images = io.load_arrays(ingest / "views.zarr", ["images"])["images"]
+    assert images.shape == (10, 96, 96, 3) and np.abs(images.astype(float) - scene.images).mean() < 8  # codec loss
+    assert not io.load_json(artifacts / ref.name / "ground_truth" / "current" / "gt.json")["has_poses"]
+    (tmp_path / "broken.mp4").write_bytes(b"not a video")
+    with pytest.raises(SceneError, match="broken.mp4: not a video OpenCV can read"):
+        pipeline.run(str(tmp_path / "broken.mp4"), until="ingest", artifacts=artifacts)
