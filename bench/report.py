@@ -510,12 +510,16 @@ def section_heldout(page: Page, systems: dict[str, Pointers]) -> None:
             page.missing(f"{name} held-out renderings", "stage evaluate")
             continue
         s = nvs["summary"]
-        page.add("mean over held-out views, at the Sim3-mapped GT poses: " + ", ".join(
-            f"{k} {_fmt(s.get(k), 3)}" for k in ("psnr", "psnr_masked", "ssim", "lpips") if k in s), "")
-        if any(k.startswith("aligned_") for k in s):
-            page.add("after test-time alignment (each held-out pose refined against the frozen field): " + ", ".join(
-                f"{k[len('aligned_'):]} {_fmt(s[k], 3)}" for k in ("aligned_psnr", "aligned_psnr_masked",
-                                                                   "aligned_ssim", "aligned_ssim_masked") if k in s), "")
+        columns = (("psnr", "PSNR dB, whole image"), ("psnr_masked", "PSNR dB, object (mask)"),
+                   ("ssim", "SSIM, whole image"), ("ssim_masked", "SSIM, object (mask)"), ("lpips", "LPIPS"))
+        columns = [(k, label) for k, label in columns if k in s or f"aligned_{k}" in s]
+        page.add("| mean over the held-out views | " + " | ".join(label for _, label in columns) + " |",
+                 "|---|" + "---|" * len(columns))
+        for what, prefix in (("at the Sim3-mapped GT poses", ""),
+                             ("after test-time alignment (pose refined against the frozen field)", "aligned_")):
+            if any(f"{prefix}{k}" in s for k, _ in columns):
+                page.add(f"| {what} | " + " | ".join(_fmt(s.get(f"{prefix}{k}"), 3) for k, _ in columns) + " |")
+        page.add("")
         for row in nvs["per_view"][:MAX_HELDOUT_IMAGES]:
             png = ev / "novel_views" / f"{row['name']}.png"
             if png.is_file():

@@ -178,7 +178,8 @@ def _frustum_lines(w2c: np.ndarray, size: float, aspect: float = 4 / 3):
     return np.array(segs)
 
 
-def plot_cameras(w2c_aligned, w2c_gt, path, valid=None, title: str | None = None, labels=("estimated (aligned)", "ground truth")):
+def plot_cameras(w2c_aligned, w2c_gt, path, valid=None, title: str | None = None, labels=("estimated (aligned)", "ground truth"),
+                 held_out=None):
     """3D figure of aligned estimated vs GT camera frusta and centres (supplement Fig. A2 style)."""
     import matplotlib
 
@@ -209,8 +210,11 @@ def plot_cameras(w2c_aligned, w2c_gt, path, valid=None, title: str | None = None
         ax.add_collection3d(Line3DCollection(err, colors="tab:blue", linewidths=0.6, linestyles="dotted"))
         ax.scatter(*Ce.T, c="tab:red", s=8)
     ax.scatter(*Cg.T, c="tab:gray", s=8)
-    if (~ok).any():
-        ax.scatter(*Cg[~ok].T, marker="x", c="k", s=30, label="missing (GT shown)")
+    held = np.zeros(N, bool) if held_out is None else np.asarray(held_out, bool) & ~ok
+    if held.any():
+        ax.scatter(*Cg[held].T, marker="^", c="tab:green", s=30, label="held out for evaluation (GT shown)")
+    if (~ok & ~held).any():
+        ax.scatter(*Cg[~ok & ~held].T, marker="x", c="k", s=30, label="not posed (GT shown)")
     for i in range(N):
         ax.text(*Cg[i], str(i), fontsize=6, color="dimgray")
     pts = np.concatenate([Cg, Ce]) if len(Ce) else Cg
@@ -218,7 +222,7 @@ def plot_cameras(w2c_aligned, w2c_gt, path, valid=None, title: str | None = None
     ax.set_xlim(mid[0] - half, mid[0] + half)
     ax.set_ylim(mid[1] - half, mid[1] + half)
     ax.set_zlim(mid[2] - half, mid[2] + half)
-    ax.set_xlabel("x")
+    ax.set_xlabel("x (ground-truth frame)")
     ax.set_ylabel("y")
     ax.set_zlabel("z")
     ax.legend(loc="upper left", fontsize=8)

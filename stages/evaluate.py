@@ -61,19 +61,23 @@ def placement_poses(rounds: list[tuple[str, dict]]) -> np.ndarray:
     return w2c
 
 
-def plot_rounds(rows: list[dict], path) -> None:
+def plot_rounds(rows: list[dict], path, units: str) -> None:
+    """Pose error after each round (mean and median over its views, against ground truth after a Sim3)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
-    x = [r["label"] for r in rows]
-    for a, key, unit in ((ax[0], "rot_err_deg", "deg"), (ax[1], "center_err_units", "")):
+    x = [f"{r['label']}\n({r['n_views']} views)" for r in rows]
+    for a, key, what in ((ax[0], "rot_err_deg", "rotation error (deg)"),
+                         (ax[1], "center_err_units", f"camera centre error ({units})")):
         a.plot(x, [r["summary"][key]["mean"] for r in rows], "o-", label="mean")
         a.plot(x, [r["summary"][key]["median"] for r in rows], "s--", label="median")
         a.set_yscale("log")
-        a.set_title(f"{key} {unit}")
+        a.set_title(f"{what} after each round")
+        a.set_xlabel("round")
+        a.set_ylabel(what)
         a.legend()
     fig.tight_layout()
     io.save_figure(path, fig)
@@ -148,12 +152,13 @@ def run(ctx) -> None:
         ctx.metrics["placement_rot_err_deg_mean"] = report["placement"]["rot_err_deg"]["mean"]
         ctx.log.info("placement: the final views at their first poses: rotation %.3f deg (mean)",
                      report["placement"]["rot_err_deg"]["mean"])
-    plot_rounds([r for r in rows if "summary" in r], ctx.out / "pose_error_rounds.png")
+    plot_rounds([r for r in rows if "summary" in r], ctx.out / "pose_error_rounds.png", gt_meta["units"])
     if final_res is None or "summary" not in rows[-1]:
         ctx.log.warning("the final round could not be scored: no geometry or novel-view evaluation")
         io.save_json(ctx.out / "evaluation.json", report)
         return
     pose_metrics.plot_cameras(final_res["w2c_aligned"], gt["w2c"], ctx.out / "cameras.png", valid=final_res["valid"],
+                              held_out=holdout_mask(len(names), ctx.section("split")),
                               title=f"{ctx.scene}: final poses (Sim3-aligned) vs GT")
     # --- geometry
 

@@ -54,6 +54,10 @@ def test_page_references_existing_pngs(built_report):
     pages = re.findall(r"\]\(([^)]+\.html)\)", text)
     assert pages == ["manifoldneus_viewer.html", "neus_barf_viewer.html"]
     assert all('id="scene-data"' in (page.parent / name).read_text() for name in pages)
+    # held-out scores say whether they are on the whole image or the object's mask, and at which pose
+    ssim = next(line for line in text.splitlines() if line.startswith("| mean over the held-out views"))
+    assert "SSIM, whole image" in ssim and "SSIM, object (mask)" in ssim
+    assert "| at the Sim3-mapped GT poses |" in text and "| after test-time alignment" in text
     assert "NeuS-COLMAP viewer: not available (stage export: `python pipeline.py run --scene synthetic --preset " \
            "neus-colmap`)" in text
 
