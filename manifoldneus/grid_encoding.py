@@ -82,10 +82,9 @@ class _FusedEncoding(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):
         u, *tables = ctx.saved_tensors
-        need_u, need_tables = ctx.needs_input_grad[0], any(ctx.needs_input_grad[2:])
-        out = fused_kernel().backward(grad_out, u, [t.reshape(-1) for t in tables], list(ctx.res), ctx.C, need_u,
-                                      need_tables)
-        grads = [g.view_as(t) for g, t in zip(out[: len(tables)], tables)] if need_tables else [None] * len(tables)
+        need_u = ctx.needs_input_grad[0]
+        out = fused_kernel().backward(grad_out, u, [t.reshape(-1) for t in tables], list(ctx.res), ctx.C, need_u)
+        grads = [g.view_as(t) for g, t in zip(out[: len(tables)], tables)]
         return (out[-1] if need_u else None), None, *grads
 
 

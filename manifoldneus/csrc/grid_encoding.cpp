@@ -79,21 +79,18 @@ torch::Tensor encode_forward(torch::Tensor u, std::vector<torch::Tensor> tables,
   return out;
 }
 
-// grad_out [N, L*C] -> (grads of the tables (dense, like the tables; none without need_tables), grad of u [N,3]).
-// Work is split over levels so each table is written by one thread (no atomics). A frozen field (poses
-// learning alone) needs no table gradient: neither the 12 M zeroed floats nor the scatter.
+// grad_out [N, L*C] -> (grads of the tables (dense, like the tables), grad of u [N,3]).
+// Work is split over levels so each table is written by one thread (no atomics).
 std::vector<torch::Tensor> encode_backward(torch::Tensor grad_out, torch::Tensor u, std::vector<torch::Tensor> tables,
-                                           std::vector<int64_t> res, int64_t C, bool need_u, bool need_tables) {
+                                           std::vector<int64_t> res, int64_t C, bool need_u) {
   grad_out = grad_out.contiguous();
   const int64_t N = u.size(0), L = int64_t(tables.size());
   std::vector<torch::Tensor> grads;
   std::vector<float*> gp(L);
   std::vector<const float*> tab(L);
   for (int64_t l = 0; l < L; ++l) {
-    if (need_tables) {
-      grads.push_back(torch::zeros_like(tables[l]));
-      gp[l] = grads[l].data_ptr<float>();
-    }
+    grads.push_back(torch::zeros_like(tables[l]));
+    gp[l] = grads[l].data_ptr<float>();
     tab[l] = tables[l].data_ptr<float>();
   }
   auto gu_levels = need_u ? torch::zeros({L, N, 3}, u.options()) : torch::Tensor();
@@ -110,14 +107,14 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor grad_out, torch::Tensor
         float d0 = 0.f, d1 = 0.f, d2 = 0.f;
         for (int j = 0; j < 8; ++j) {
           if (k[j].offset < 0) continue;
-          if (need_tables) {
-            float* t = gp[l] + k[j].offset;
-            for (int64_t c = 0; c < C; ++c) t[c] += k[j].w * g[c];
-          }
-          if (!need_u) continue;
+          float* t = gp[l] + k[j].offset;
           const float* v = tab[l] + k[j].offset;
           float dot = 0.f;
-          for (int64_t c = 0; c < C; ++c) dot += g[c] * v[c];
+          for (int64_t c = 0; c < C; ++c) {
+            t[c] += k[j].w * g[c];
+            dot += g[c] * v[c];
+          }
+          if (!need_u) continue;
           d0 += k[j].dw[0] * dot;
           d1 += k[j].dw[1] * dot;
           d2 += k[j].dw[2] * dot;
