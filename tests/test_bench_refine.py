@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from bench import bench_refine
 from tests.test_end_to_end import TINY
 
@@ -31,7 +33,9 @@ def test_refinement_bench_two_seeds(tmp_path, capsys):
     assert runs[1]["sfm_all"]["iters"] == 1 and "psnr_masked" not in runs[1]["sfm_all"]
     assert all(r["sfm_all"]["rot_deg"] > 0 for r in runs)
     s = result["scenes"]["synthetic"]["summary"]
-    assert s["final_rot_deg"]["n"] == 2 and s["final_rot_deg"]["std"] >= 0
+    finals = [r["final"]["rot_deg"] for r in runs]  # the summary is the seeds' mean and sample std
+    assert s["final_rot_deg"]["n"] == 2 and s["final_rot_deg"]["mean"] == pytest.approx(sum(finals) / 2)
+    assert s["final_rot_deg"]["std"] == pytest.approx(abs(finals[0] - finals[1]) / 2 ** 0.5)
     assert {t["target"] for t in result["scenes"]["synthetic"]["targets"]} >= {
         "final <= 0.5 x initialisation", "spread over seeds <= 0.02 deg", "final <= 0.85 x sfm-all",
         "final centre <= sfm-all's"}
