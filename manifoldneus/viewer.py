@@ -235,11 +235,13 @@ def find_browser() -> str | None:
 
 
 def render_in_browser(page: Path, screenshot: Path | None = None, size: tuple[int, int] = (1200, 800),
-                      budget_ms: int = 20000, browser: str | None = None) -> dict:
-    """Open ``page`` in headless Chromium with software WebGL (SwiftShader), let it run, and return
-    what it showed: ``attributes`` (the ``data-*`` the page wrote on <html>: ``viewer-state``,
-    ``cameras-drawn``, ``errors``, ...), ``console`` (every console message and uncaught error) and
-    the screenshot's path. Raises RuntimeError when no browser is found or it fails."""
+                      budget_ms: int = 20000, browser: str | None = None, fragment: str = "",
+                      webgl: bool = True) -> dict:
+    """Open ``page`` (+ ``fragment``, e.g. ``#view=object``) in headless Chromium with software WebGL
+    (SwiftShader; none with ``webgl`` false), let it run, and return what it showed: ``attributes``
+    (the ``data-*`` the page wrote on <html>: ``viewer-state``, ``cameras-drawn``, ``errors``, ...),
+    ``console`` (every console message and uncaught error), ``dom`` (the page as it ended) and the
+    screenshot's path. Raises RuntimeError when no browser is found or it fails."""
     import os
     import re
     import subprocess
@@ -250,18 +252,19 @@ def render_in_browser(page: Path, screenshot: Path | None = None, size: tuple[in
         raise RuntimeError(f"no Chromium found (looked for {', '.join(BROWSERS)}); "
                            "install the Debian package: apt-get install chromium")
     with tempfile.TemporaryDirectory(prefix="manifoldneus_chromium_") as profile:
-        args = [browser, "--headless", f"--user-data-dir={profile}", "--use-angle=swiftshader",
-                "--enable-unsafe-swiftshader", "--enable-logging=stderr", "--v=0", "--hide-scrollbars",
+        gl = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"] if webgl else ["--disable-3d-apis"]
+        args = [browser, "--headless", f"--user-data-dir={profile}", *gl, "--enable-logging=stderr", "--v=0",
+                "--hide-scrollbars",
                 f"--window-size={size[0]},{size[1]}", f"--virtual-time-budget={budget_ms}", "--dump-dom"]
         if hasattr(os, "geteuid") and os.geteuid() == 0:
             args.append("--no-sandbox")  # Chromium refuses to run as root with its sandbox
         if screenshot is not None:
             args.append(f"--screenshot={Path(screenshot).resolve()}")
-        done = subprocess.run([*args, Path(page).resolve().as_uri()], capture_output=True, text=True,
+        done = subprocess.run([*args, Path(page).resolve().as_uri() + fragment], capture_output=True, text=True,
                               timeout=budget_ms / 1000 + 120)
     opening = re.search(r"<html[^>]*>", done.stdout)
     if done.returncode != 0 or opening is None:
         raise RuntimeError(f"{browser} failed (exit {done.returncode}): {done.stderr[-2000:]}")
     attributes = dict(re.findall(r'data-([a-z-]+)="([^"]*)"', opening.group(0)))
     console = re.findall(r":CONSOLE[^\]]*\] (.*)", done.stderr)
-    return {"attributes": attributes, "console": console, "screenshot": screenshot}
+    return {"attributes": attributes, "console": console, "dom": done.stdout, "screenshot": screenshot}

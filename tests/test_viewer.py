@@ -94,8 +94,6 @@ def test_the_page_renders_in_headless_chromium(page, tmp_path):
     in a real browser: ready, every camera drawn, the mesh in the middle of the picture."""
     if viewer.find_browser() is None:
         pytest.skip("no Chromium on this machine (bash .ci/run installs the Debian package chromium)")
-    from PIL import Image
-
     _, run = page
     path = hostile_page(page[0], tmp_path)
     shown = viewer.render_in_browser(path, tmp_path / "viewer.png", size=(1000, 700))
@@ -104,13 +102,46 @@ def test_the_page_renders_in_headless_chromium(page, tmp_path):
     assert [m for m in shown["console"] if re.search(r"error|uncaught|warning", m, re.I)] == []
     assert attrs["viewer-state"] == "ready"
     assert int(attrs["cameras-drawn"]) == run["optimised"] and int(attrs["held-out-drawn"]) == run["held_out"]
-    # the mesh is drawn: the middle of the picture is mostly not background (cameras are thin lines)
-    image = np.asarray(Image.open(tmp_path / "viewer.png").convert("RGB")).astype(int)
+    # the mesh is drawn in the middle of what the panel (about 300 px) leaves free (cameras are thin lines)
+    drawn = drawn_fraction(tmp_path / "viewer.png", (0.4, 0.6, 0.58, 0.74))
+    assert drawn > 0.5, f"only {drawn:.0%} of the free area's centre is drawn"
+
+
+def drawn_fraction(png, box=(0.0, 1.0, 0.0, 1.0)) -> float:
+    """Fraction of the picture (rows y0-y1, columns x0-x1, as fractions) not background."""
+    from PIL import Image
+
+    image = np.asarray(Image.open(png).convert("RGB")).astype(int)
     h, w = image.shape[:2]
-    centre = image[int(0.4 * h):int(0.6 * h), int(0.42 * w):int(0.58 * w)]
-    background = np.array([0x1E, 0x21, 0x27])
-    drawn = (np.abs(centre - background).max(-1) > 16).mean()
-    assert drawn > 0.5, f"only {drawn:.0%} of the centre is drawn"
+    y0, y1, x0, x1 = box
+    part = image[int(y0 * h):int(y1 * h), int(x0 * w):int(x1 * w)]
+    return float((np.abs(part - np.array([0x1E, 0x21, 0x27])).max(-1) > 16).mean())
+
+
+def test_fit_to_object_fills_the_view_beside_the_panel(page, tmp_path):
+    """'fit object' (button, key f, or a link ending #view=object) frames the mesh in the part of the
+    window the panel leaves free: the mesh covers far more of the picture than the reset view, whose
+    every camera is in view, and the panel's side stays background."""
+    if viewer.find_browser() is None:
+        pytest.skip("no Chromium on this machine (bash .ci/run installs the Debian package chromium)")
+    path, _ = page
+    shown = {}
+    for view, fragment in (("all", ""), ("object", "#view=object")):
+        shown[view] = viewer.render_in_browser(path, tmp_path / f"{view}.png", size=(1000, 700), fragment=fragment)
+        assert shown[view]["attributes"]["view"] == view and "errors" not in shown[view]["attributes"]
+    right = (0.1, 0.9, 0.35, 0.95)  # the free area, right of the 290-px panel
+    assert drawn_fraction(tmp_path / "object.png", right) > 2 * drawn_fraction(tmp_path / "all.png", right)
+    assert 'id="fit-object"' in shown["object"]["dom"] and 'id="reset-view"' in shown["object"]["dom"]
+
+
+def test_without_webgl_the_page_says_so(page, tmp_path):
+    if viewer.find_browser() is None:
+        pytest.skip("no Chromium on this machine (bash .ci/run installs the Debian package chromium)")
+    shown = viewer.render_in_browser(page[0], tmp_path / "none.png", size=(800, 500), webgl=False)
+    assert shown["attributes"]["viewer-state"] == "no-webgl"
+    message = re.search(r'<div id="no-webgl"([^>]*)>', shown["dom"])
+    assert message and "hidden" not in message.group(1) and "hardware acceleration" in shown["dom"]
+    assert re.search(r'<div id="panel"[^>]*hidden', shown["dom"])
 
 
 HOSTILE = ["{{APP}}", "<!--<script>", "{{IMPORTMAP}}", "</script><b>", "a&b \"q\""]

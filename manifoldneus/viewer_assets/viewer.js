@@ -32,6 +32,14 @@ function roleColour(camera) {
 // ---------------------------------------------------------------- scene
 
 const container = document.getElementById("view");
+// Without WebGL (disabled, blocked, an old GPU driver) say so on the page rather than show an empty panel.
+const probe = document.createElement("canvas");
+if (!(probe.getContext("webgl2") || probe.getContext("webgl"))) {
+  document.getElementById("panel").hidden = true;
+  document.getElementById("no-webgl").hidden = false;
+  root.dataset.viewerState = "no-webgl";
+  throw new Error("WebGL is not available: the viewer cannot draw");
+}
 const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
 renderer.setPixelRatio(window.devicePixelRatio);
 renderer.setSize(window.innerWidth, window.innerHeight);
@@ -137,6 +145,30 @@ function showRound(r) {
 
 // ---------------------------------------------------------------- view and controls
 
+// The panel covers the left of the window: the view's centre is moved to the middle of what is left.
+const panel = document.getElementById("panel");
+function freeArea() {
+  const cover = window.innerWidth >= 640 ? panel.offsetWidth + 20 : 0;
+  camera.setViewOffset(window.innerWidth, window.innerHeight, -cover / 2, 0, window.innerWidth, window.innerHeight);
+  // the half-angle the free area subtends: vertically, and horizontally over the uncovered width
+  const half = THREE.MathUtils.degToRad(camera.fov / 2);
+  const horizontal = Math.atan(Math.tan(half) * (window.innerWidth - cover) / window.innerHeight);
+  return Math.min(half, horizontal);
+}
+
+// Look at a sphere (centre, radius) from direction `look` with image-up `up`, filling `fill` of the free area.
+function frame(centre, radius, look, up, fill) {
+  camera.up.copy(up);
+  const distance = radius / fill / Math.sin(freeArea());
+  camera.position.copy(centre).add(look.clone().normalize().multiplyScalar(distance));
+  camera.near = distance / 100;
+  camera.far = distance * 10;
+  camera.updateProjectionMatrix();
+  controls.target.copy(centre);
+  controls.update();
+}
+
+// Reset: every camera and the mesh in view, seen from the cameras' side, their image-up up.
 function fitView() {
   const final = data.rounds[data.rounds.length - 1];
   const frusta = final.frusta.filter(Boolean);
@@ -154,14 +186,16 @@ function fitView() {
   for (const f of frusta) radius = Math.max(radius, apex(f).distanceTo(centre));
   if (look.lengthSq() === 0) look.set(0, 0, 1);
   if (up.lengthSq() === 0) up.set(0, 1, 0);
-  camera.up.copy(up.normalize());
-  const distance = 0.85 * radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2));
-  camera.position.copy(centre).add(look.normalize().multiplyScalar(distance));
-  camera.near = distance / 100;
-  camera.far = distance * 10;
-  camera.updateProjectionMatrix();
-  controls.target.copy(centre);
-  controls.update();
+  frame(centre, radius, look, up.normalize(), 1 / 0.75);  // margin: near cameras project wider
+  root.dataset.view = "all";
+}
+
+// Fit to object: the mesh fills the free area, seen from where the user looks now.
+function fitObject() {
+  if (!mesh) return fitView();
+  const sphere = mesh.geometry.boundingSphere;
+  frame(sphere.center.clone(), sphere.radius, camera.position.clone().sub(controls.target), camera.up.clone(), 0.9);
+  root.dataset.view = "object";
 }
 
 const controls = new OrbitControls(camera, renderer.domElement);
@@ -223,9 +257,17 @@ renderer.domElement.addEventListener("pointermove", (event) => {
 
 window.addEventListener("resize", () => {
   camera.aspect = window.innerWidth / window.innerHeight;
+  freeArea();
   camera.updateProjectionMatrix();
   renderer.setSize(window.innerWidth, window.innerHeight);
   render();
+});
+document.getElementById("fit-object").addEventListener("click", () => { fitObject(); render(); });
+document.getElementById("reset-view").addEventListener("click", () => { fitView(); render(); });
+window.addEventListener("keydown", (event) => {
+  if (event.target.tagName === "INPUT") return;
+  if (event.key === "f") { fitObject(); render(); }
+  if (event.key === "r") { fitView(); render(); }
 });
 
 // ---------------------------------------------------------------- panel
@@ -251,6 +293,7 @@ document.getElementById("legend").innerHTML = legend.map(([name, colour]) =>
 
 showRound(data.rounds.length - 1);
 fitView();
+if (window.location.hash === "#view=object") fitObject();  // a link that opens fitted to the object
 render();
 root.dataset.heldOutDrawn = String(held.length);
 root.dataset.meshTriangles = String(mesh ? data.mesh.n_faces : 0);
