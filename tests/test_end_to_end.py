@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import torch
@@ -145,14 +144,21 @@ def test_neus_barf_preset_reuses_the_front_end(tiny_run):
 
 
 def test_max_rounds_stops_after_the_first_successor_round(tiny_run):
+    """successors.max_rounds=1 makes round 1 the last, final round: its length is final_iters, and with
+    successors.final_image_size=0 (coarse-to-fine over image resolution) it trains at the images' own
+    128 px while the anchors trained at train.image_size (32 px)."""
     artifacts, _ = tiny_run
-    report = pipeline.run("synthetic", overrides=TINY + ["successors.max_rounds=1", "successors.final_iters=45"],
+    report = pipeline.run("synthetic", overrides=TINY + ["successors.max_rounds=1", "successors.final_iters=45",
+                                                         "successors.final_image_size=0"],
                           until="successors", artifacts=artifacts)
     assert report["anchors"] == "reused" and report["successors"] == "computed"
     succ = current(artifacts, "successors")
     assert sorted(p.name for p in succ.glob("round_*")) == ["round_1"]
     assert (succ / "final").resolve().name == "round_1"
     assert io.load_json(succ / "round_1" / "round.json")["train"]["steps"] == 45  # the last round run is final
+    size = {d: torch.load(d / "model.pt", map_location="cpu", weights_only=False)["params"]["train"]["image_size"]
+            for d in (current(artifacts, "anchors") / "round_0", succ / "round_1")}
+    assert list(size.values()) == [32, 0]
 
 
 def test_refine_placed_off_learns_only_the_new_views(tiny_run):
@@ -193,18 +199,3 @@ def test_the_last_round_can_restart_every_view_from_the_matches_sfm(tiny_run, tm
         moved = np.abs(end["w2c_init"][carried] - before["w2c"][carried]).max()
         assert (moved > 1e-6) == restarted, (where, moved)
 
-
-def test_the_last_round_can_train_on_the_images_own_size(tiny_run):
-    """successors.final_image_size=0: coarse-to-fine over image resolution. The earlier rounds train
-    at train.image_size (32 px here), the last at the images' own 128 px, and the evaluation scores
-    the final model at its size."""
-    artifacts, _ = tiny_run
-    report = pipeline.run("synthetic", overrides=TINY + ["successors.max_rounds=2", "successors.final_image_size=0"],
-                          artifacts=artifacts)
-    assert report["successors"] == "computed"
-    succ = current(artifacts, "successors")
-    size = {r: torch.load(succ / f"round_{r}" / "model.pt", map_location="cpu", weights_only=False)["params"]["train"]
-            ["image_size"] for r in (1, 2)}
-    assert size == {1: 32, 2: 0}
-    rendered = sorted((current(artifacts, "evaluate") / "novel_views").glob("*.png"))
-    assert rendered and cv2.imread(str(rendered[0])).shape[1] == 2 * 128  # rendered | real, at 128 px
