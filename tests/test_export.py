@@ -1,6 +1,7 @@
 """Exports (manifoldneus/export.py, stages/export.py): the COLMAP text model read back by pycolmap,
 nerfstudio's transforms.json read back by export.read_transforms_json, both to 1e-9; the OpenGL
 camera convention; and the export stage's result on the tiny synthetic run, in the input's frame."""
+import importlib.util
 import json
 
 import numpy as np
@@ -191,3 +192,21 @@ def test_the_export_frame_undoes_the_alignment_and_the_normalisation(tmp_path):
     io.save_json(tmp_path / "gt.json", {"has_poses": False})
     M, frame, _, how = world_from_model(tmp_path, w2c_model, valid, "input")
     assert frame == "model" and np.array_equal(M, np.eye(4)) and "no cameras of its own" in how
+
+
+@pytest.mark.skipif(importlib.util.find_spec("nerfstudio") is None,
+                    reason="nerfstudio is not installed; export.read_transforms_json checks the format")
+def test_nerfstudio_reads_the_export_when_installed(tiny_run):
+    """nerfstudio's own dataparser on transforms.json (shared intrinsics at the top, ply_file_path);
+    skipped where nerfstudio is not installed (it is not a dependency: the format is checked above)."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    artifacts_dir, _ = tiny_run
+    out = pipeline.Store(artifacts_dir, "synthetic").lineage("export")["export"]
+    meta = json.loads((out / export.TRANSFORMS).read_text())
+    parsed = NerfstudioDataParserConfig(data=out, orientation_method="none", center_method="none",
+                                        auto_scale_poses=False, train_split_fraction=1.0,
+                                        load_3D_points=True).setup().get_dataparser_outputs("train")
+    assert len(parsed.image_filenames) == len(meta["frames"])
+    assert float(parsed.cameras.fx[0]) == pytest.approx(meta["fl_x"])
+    assert parsed.metadata["points3D_xyz"].shape[0] > 20
