@@ -236,6 +236,28 @@ def video_frames(path: Path, n_frames: int) -> dict:
             "names": [f"frame_{i:06d}" for _, i, _ in picked], "intrinsics_source": "default"}
 
 
+def undistorted(views: dict, distortion: np.ndarray) -> dict:
+    """The views with OpenCV lens ``distortion`` ([k1, k2, p1, p2(, k3)]) removed, each at its own K
+    (kept: a pinhole camera with the same K sees what the lens would without distortion): images
+    and priors resampled bilinearly, masks by nearest pixel. Pixels the lens did not cover stay 0."""
+    import cv2
+
+    out = dict(views)
+    h, w = views["images"].shape[1:3]
+    for key in ("images", "masks", "mono_depth", "mono_normal"):
+        if views.get(key) is None:
+            continue
+        stack = []
+        for K, image in zip(views["K"], views[key]):
+            maps = cv2.initUndistortRectifyMap(K, distortion, None, K, (w, h), cv2.CV_32FC1)
+            nearest = key == "masks"
+            src = image.astype(np.uint8) if nearest else image
+            warped = cv2.remap(src, *maps, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR)
+            stack.append(warped.astype(image.dtype))
+        out[key] = np.stack(stack)
+    return out
+
+
 # Arrays and lists with one entry per view, in view order: what a view subset must slice.
 PER_VIEW_KEYS = ("images", "K", "masks", "mono_depth", "mono_normal", "names", "w2c")
 
@@ -270,6 +292,8 @@ def read_views(ref: SceneRef, p) -> dict:
         views["layout"] = layout
     source = views.pop("intrinsics_source", "calibrated")
     views["K"], source = _intrinsics_in_use(views["K"], source, views["images"].shape[1:3], p)
+    if p.distortion:
+        views = undistorted(views, np.asarray(p.distortion, np.float64))
     views = every_nth_view(views, p.view_stride)
     if not p.load_masks:
         views.pop("masks", None)

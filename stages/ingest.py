@@ -29,6 +29,12 @@ class Params:
                                     "focal length, else 1.2 x the larger side (refined downstream)",
                                     check=lambda k: None if not k or (len(k) == 4 and k[0] > 0 and k[1] > 0) else
                                     f"{k} is not [fx, fy, cx, cy] with positive focal lengths (pixels)")
+    distortion: list[float] = param([], "OpenCV lens distortion [k1, k2, p1, p2] or [k1, k2, p1, p2, k3] of the input "
+                                    "images (a known calibration, with their K: the layout's or ingest.intrinsics): "
+                                    "images, masks and priors are undistorted at ingest, so every stage and export "
+                                    "sees pinhole images with that K; empty = pinhole already",
+                                    check=lambda d: None if len(d) in (0, 4, 5) else
+                                    f"{d} is not [k1, k2, p1, p2] or [k1, k2, p1, p2, k3]")
     use_calibration: bool = param(True, "Read the layout's cameras' intrinsics; false = start from the uncalibrated "
                                   "guess (1.2 x the larger side) as a plain photo folder would, to measure "
                                   "self-calibration against the layout's own K")
@@ -87,7 +93,7 @@ def run(ctx) -> None:
         "names": names, "height": h, "width": w, "layout": layout,
         "has_masks": "masks" in views, "has_mono_depth": "mono_depth" in views,
         "has_mono_normal": "mono_normal" in views, "intrinsics_source": intrinsics_source,
-        "has_cameras": scenes.layout_has_cameras(layout),
+        "has_cameras": scenes.layout_has_cameras(layout), "undistorted_with": list(p.distortion),
         "source": str(ctx.scene_ref.path) if ctx.scene_ref.path else ctx.scene_ref.name,
     })
     io.save_png(ctx.out / "contact_sheet.png", contact_sheet(views["images"], views.get("masks")))

@@ -10,6 +10,7 @@ import pytest
 
 import pipeline
 from manifoldneus import cameras, io, scenes
+from manifoldneus.config import ParamError
 from manifoldneus.scenes import SceneError, read_ground_truth, read_views, resolve_scene
 from stages.ingest import Params
 from tests.conftest import SHARED_DATA, needs_dtu
@@ -367,3 +368,41 @@ def test_a_video_becomes_its_sharpest_frames(tmp_path, artifacts):
     (tmp_path / "broken.mp4").write_bytes(b"not a video")
     with pytest.raises(SceneError, match="broken.mp4: not a video OpenCV can read"):
         pipeline.run(str(tmp_path / "broken.mp4"), until="ingest", artifacts=artifacts)
+
+
+def test_known_lens_distortion_is_removed_at_ingest(tmp_path, artifacts):
+    """Photos through a barrel-distorting lens (k1 = -1 at this narrow field of view: up to 6 px in the
+    middle of the picture; p1 = 0.002) with their known calibration: ingest.distortion gives back
+    the pinhole images (the synthetic scene's own), not the distorted ones the folder holds. Compared
+    blurred: the lens's compression of the periphery loses the finest texture for good."""
+    import cv2
+
+    from manifoldneus import synthetic
+
+    scene = synthetic.make_scene(seed=4, n_views=4, resolution=128)
+    K, dist = scene.K[0], np.array([-1.0, 0.0, 0.002, 0.0])
+    # a distorted pixel (u, v) shows the pinhole image at undistort((u, v)); remap samples it there
+    grid = np.stack(np.meshgrid(np.arange(128.0), np.arange(128.0)), -1).reshape(-1, 1, 2)
+    source = cv2.undistortPoints(grid, K, dist, P=K).reshape(128, 128, 2).astype(np.float32)
+    folder = tmp_path / "lens"
+    folder.mkdir()
+    for i, im in enumerate(scene.images):
+        io.save_png(folder / f"IMG_{i}.png", cv2.remap(im, source[..., 0], source[..., 1], cv2.INTER_LINEAR))
+    given = "ingest.intrinsics=[" + ",".join(str(float(x)) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])) + "]"
+    ref = resolve_scene(str(folder))
+
+    def blurred(images):
+        return np.stack([cv2.GaussianBlur(im.astype(np.float32), (0, 0), 2.0) for im in images])
+
+    errors = {}
+    for distortion in ([], dist.tolist()):
+        pipeline.run(str(folder), until="ingest", artifacts=artifacts,
+                     overrides=[given, f"ingest.distortion=[{','.join(map(str, distortion))}]"])
+        images = io.load_arrays(artifacts / ref.name / "ingest" / "current" / "views.zarr", ["images"])["images"]
+        inner = (slice(None), slice(24, 104), slice(24, 104))  # away from the border the lens leaves uncovered
+        errors[len(distortion)] = np.abs(blurred(images)[inner] - blurred(scene.images)[inner]).mean()
+        meta = io.load_json(artifacts / ref.name / "ingest" / "current" / "views.json")
+        assert meta["undistorted_with"] == distortion
+    assert errors[4] < 0.35 * errors[0], errors
+    with pytest.raises(ParamError, match=r"ingest.distortion: .* is not \[k1, k2, p1, p2\]"):
+        pipeline.run(str(folder), until="ingest", artifacts=artifacts, overrides=[given, "ingest.distortion=[0.1]"])
