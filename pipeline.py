@@ -102,6 +102,18 @@ class Stage:
     def params_cls(self):
         return self.module.Params
 
+    def reads(self) -> dict[str, frozenset | None]:
+        """Section -> the keys the stage declares it reads (``"section.key"`` in SECTIONS), or None
+        for a whole section (``"section"``). Only what is declared enters its fingerprint."""
+        out: dict[str, set | None] = {}
+        for entry in self.sections:
+            section, _, key = entry.partition(".")
+            if not key or out.get(section, set()) is None:
+                out[section] = None
+            else:
+                out.setdefault(section, set()).add(key)
+        return {k: None if v is None else frozenset(v) for k, v in out.items()}
+
 
 def load_stages() -> dict[str, Stage]:
     """Import every stage listed in ``stages.STAGES`` and check the DAG's rules."""
@@ -280,7 +292,31 @@ def code_hash(stage: Stage) -> str:
 
 
 def stage_params(stage: Stage, resolved: dict) -> dict:
-    return {s: config.as_dict(resolved[s]) for s in stage.sections}
+    """The parameters a stage declares (whole sections, or the declared keys of a section)."""
+    out = {}
+    for section, keys in stage.reads().items():
+        values = config.as_dict(resolved[section])
+        unknown = sorted(set(keys or ()) - set(values))
+        if unknown:
+            raise PipelineError(f"stage {stage.name} declares {[f'{section}.{k}' for k in unknown]}: no such key")
+        out[section] = values if keys is None else {k: values[k] for k in sorted(keys)}
+    return out
+
+
+class DeclaredKeys:
+    """A section seen through the keys a stage declared: any other key is an error, so a stage cannot
+    read a parameter its fingerprint does not cover."""
+
+    def __init__(self, stage: str, section: str, values, keys: frozenset):
+        self._stage, self._section, self._values, self._keys = stage, section, values, keys
+
+    def __getattr__(self, key: str):
+        if key.startswith("_"):
+            raise AttributeError(key)
+        if key not in self._keys:
+            raise PipelineError(f"stage {self._stage} reads {self._section}.{key} without declaring it in SECTIONS "
+                                f"(it declares {sorted(f'{self._section}.{k}' for k in self._keys)})")
+        return getattr(self._values, key)
 
 
 def own_ingredients(stages: dict[str, Stage], resolved: dict, scene) -> dict[str, dict]:
@@ -572,9 +608,11 @@ class Context:
         self.checkpoint_dir = store.stage_dir(stage.name) / f".ckpt-{fingerprint}"
 
     def section(self, name: str):
-        if name not in self.stage.sections:
+        reads = self.stage.reads()
+        if name not in reads:
             raise PipelineError(f"stage {self.stage.name} reads section {name!r} without declaring it in SECTIONS")
-        return self._resolved[name]
+        keys = reads[name]
+        return self._resolved[name] if keys is None else DeclaredKeys(self.stage.name, name, self._resolved[name], keys)
 
     def input(self, name: str) -> Path:
         if name not in self._upstream:
@@ -751,7 +789,7 @@ def run(
     store = Store(artifacts, scene.name, preset)
     own = own_ingredients(stages, resolved, scene)
     selected = select(stages, until, only)
-    if any("run" in stages[name].sections for name in selected):  # before the front-end, not after it
+    if any("run" in stages[name].reads() for name in selected):  # before the front-end, not after it
         problem = config.device_problem(resolved["run"].device)
         if problem:
             raise ParamError(f"run.device: {problem}")

@@ -30,7 +30,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "mesh", "reference_surface")
-SECTIONS = ("evaluate", "run", "split", "novel_views")
+SECTIONS = ("evaluate", "run.device", "split", "novel_views")
 OUTPUTS = ("evaluation.json", "pose_error_rounds.png")
 
 

@@ -38,7 +38,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "mesh")
-SECTIONS = ("export", "run")
+SECTIONS = ("export", "run.device")
 OUTPUTS = ("colmap", export.TRANSFORMS, "mesh.ply", "mesh.glb", export.FRAME)
 
 

@@ -16,7 +16,7 @@ from manifoldneus import artifacts, evaluation, export, io, object_region, posef
 
 Params = evaluation.MeshParams
 UPSTREAM = ("ingest", "anchors", "successors")
-SECTIONS = ("meshing", "run")
+SECTIONS = ("meshing", "run.device")  # run.seed and run.threads do not change a mesh
 OUTPUTS = ("mesh.ply", "poses.zarr", "colmap")
 
 

@@ -638,3 +638,24 @@ def test_every_option_of_every_command_says_what_it_does(capsys):
     with pytest.raises(SystemExit) as e:
         pipeline.main(["--version"])
     assert e.value.code == 0 and capsys.readouterr().out.startswith(f"manifoldneus {manifoldneus.__version__} (torch ")
+
+
+def test_a_stage_declaring_one_key_of_a_section_is_not_rerun_by_the_others(tmp_path):
+    """mesh, export and evaluate declare run.device, not all of run: run.threads and run.seed do not
+    enter their fingerprints (the rounds, which read them, do), and reading an undeclared key of
+    the section is an error."""
+    stages = pipeline.load_stages()
+    assert stages["mesh"].reads()["run"] == {"device"} and stages["anchors"].reads()["run"] is None
+    base = pipeline.resolve_params(stages, overrides=TINY)
+    other = pipeline.resolve_params(stages, overrides=[*TINY, "run.threads=1"])
+    scene = pipeline.resolve_scene("synthetic")
+    own_base, own_other = (pipeline.own_ingredients(stages, r, scene) for r in (base, other))
+    changed = {name for name in stages if own_base[name]["params"] != own_other[name]["params"]}
+    assert {"anchors", "successors"} <= changed and not changed & {"mesh", "export", "evaluate"}
+    ctx = pipeline.Context(stages["mesh"], base, pipeline.Store(tmp_path, "x"), {}, tmp_path, scene, None)
+    assert ctx.section("run").device == "cpu"
+    with pytest.raises(pipeline.PipelineError, match=r"mesh reads run.threads without declaring it"):
+        ctx.section("run").threads
+    broken = pipeline.Stage("mesh", stages["mesh"].module, (), ("meshing", "run.devices"), ())
+    with pytest.raises(pipeline.PipelineError, match=r"declares \['run.devices'\]: no such key"):
+        pipeline.stage_params(broken, base)
