@@ -19,6 +19,7 @@ for the Eikonal loss) asks for ``torch``.
 """
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import sys
@@ -53,8 +54,14 @@ def fused_kernel():
             d.mkdir(parents=True, exist_ok=True)
             # the venv's ninja (requirements.txt) when the venv is not activated
             os.environ["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"
-            _ext = load("manifoldneus_grid_encoding", [str(_SOURCE)], build_directory=str(d),
-                        extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
+            # One build at a time under a lock the kernel releases when its holder dies. torch's own
+            # lock file outlives a build killed half-way, and every later process would wait on it
+            # forever: holding ours, no live build can own it, so it is stale and goes.
+            with open(d / "build.flock", "w") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)
+                (d / "lock").unlink(missing_ok=True)
+                _ext = load("manifoldneus_grid_encoding", [str(_SOURCE)], build_directory=str(d),
+                            extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
         except Exception as e:  # no compiler, no headers, a read-only home: grid_sample still works
             _ext_error = f"{type(e).__name__}: {str(e).strip().splitlines()[-1][:200] if str(e).strip() else ''}"
             log.warning("the fused grid kernel could not be built (%s); the grids use torch's grid_sample, "

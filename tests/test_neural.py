@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -425,6 +426,29 @@ def test_band_weights_interface():
         off = torch.ones(10, L)
         off[:, -1] = 0.0
         assert not torch.allclose(f.sdf(x, off), f.sdf(x, torch.ones(10, L)), atol=1e-6)
+
+
+def test_a_build_killed_half_way_does_not_hang_later_processes(tmp_path):
+    """A build interrupted after torch took its lock file leaves that file behind; a later process
+    must still load the kernel (it used to wait on the stale lock forever)."""
+    import shutil
+    import subprocess
+    import sys
+
+    from manifoldneus import grid_encoding
+
+    if grid_encoding.fused_kernel() is None:
+        pytest.fail(f"the fused grid kernel did not build: {grid_encoding.fused_unavailable_reason()}")
+    cache = tmp_path / "cache"
+    built = grid_encoding._build_dir()
+    shutil.copytree(built, cache / built.name, ignore=shutil.ignore_patterns("lock", "build.flock"))
+    (cache / built.name / "lock").touch()  # what the interrupted build left
+    code = ("from manifoldneus import grid_encoding as g; "
+            "assert g.fused_kernel() is not None, g.fused_unavailable_reason()")
+    env = {**os.environ, "MANIFOLDNEUS_CACHE": str(cache)}
+    done = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).parent.parent, env=env, timeout=120,
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
 
 
 def test_the_fused_grid_kernel_computes_what_grid_sample_computes(caplog):
