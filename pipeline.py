@@ -749,9 +749,21 @@ def _refuse_damaged(store: Store, stage: str, fingerprint: str, rebuild: str) ->
                             f"{f', and {len(problems) - 1} more' if len(problems) > 1 else ''}); rebuild it: {rebuild}")
 
 
+def upstream_closure(stages: dict[str, Stage], name: str) -> set[str]:
+    """`name` and every stage it depends on, directly or through others."""
+    out, todo = set(), [name]
+    while todo:
+        current = todo.pop()
+        if current not in out:
+            out.add(current)
+            todo.extend(stages[current].upstream)
+    return out
+
+
 def select(stages: dict[str, Stage], until: str | None, only: str | list[str] | None) -> list[str]:
-    """The stages a run brings up to date, in DAG order: all, those up to `until`, or `only` (one
-    stage, or several whose upstream are among them or computed)."""
+    """The stages a run brings up to date, in DAG order: all; `until` and what it depends on (not
+    the stages listed before it that it does not need); or `only` (one stage, or several whose
+    upstream are among them or computed)."""
     names = list(stages)
     only_list = [only] if isinstance(only, str) else list(only or [])
     for flag, value in (("--until", until), *(("--only", o) for o in only_list)):
@@ -760,7 +772,8 @@ def select(stages: dict[str, Stage], until: str | None, only: str | list[str] | 
     if only_list:
         return [n for n in names if n in only_list]
     if until:
-        return names[: names.index(until) + 1]
+        needed = upstream_closure(stages, until)
+        return [n for n in names if n in needed]
     return names
 
 
@@ -1233,7 +1246,7 @@ def _parser() -> argparse.ArgumentParser:
     common(sp, scenes=True)
     executor.add_arguments(sp)
     g = sp.add_mutually_exclusive_group()
-    g.add_argument("--until", help="run every stage up to and including this one")
+    g.add_argument("--until", help="run this stage and the stages it depends on (not the others listed before it)")
     g.add_argument("--only", help="run just this stage (its upstream must be up to date)")
     sp.add_argument("--force", action="append", default=[], metavar="STAGE", help="recompute even if cached")
     sp = sub.add_parser("status", help="which stages are fresh, stale, cached or missing, and why")

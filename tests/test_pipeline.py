@@ -427,12 +427,25 @@ def test_upstream_recomputed_to_the_same_bytes_leaves_downstream_fresh(artifacts
     assert st["ingest"][0] == "stale"
     assert st["features"] == ("stale", ["upstream ingest is not computed with these parameters"])
     report = pipeline.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
-    assert report == {"ingest": "computed", "ground_truth": "computed", "features": "reused"}
+    assert report == {"ingest": "computed", "features": "reused"}
     assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["features"] == ("fresh", [])
     # different bytes do reach it
     report = pipeline.run("synthetic", until="features", overrides=[*FAST_SYNTH, "ingest.synthetic_views=7"],
                           artifacts=artifacts)
-    assert report == {"ingest": "computed", "ground_truth": "computed", "features": "computed"}
+    assert report == {"ingest": "computed", "features": "computed"}
+
+
+def test_until_brings_up_only_the_stages_it_depends_on():
+    """`--until S` is S's upstream closure, not the prefix of the stage list: anchors does not
+    train the GT-pose NeuS or score pycolmap; pycolmap's scoring does not run the front-end."""
+    stages = pipeline.load_stages()
+    anchors = pipeline.select(stages, "anchors", None)
+    assert anchors == ["ingest", "features", "matching", "covisibility", "spectral", "schedule", "reference", "anchors"]
+    assert pipeline.select(stages, "evaluate_poses", None) == ["ingest", "ground_truth", "reference", "evaluate_poses"]
+    assert pipeline.select(stages, None, None) == list(stages)  # the whole DAG, in order
+    for name in stages:  # every selection is closed under upstream and in DAG order
+        chosen = pipeline.select(stages, name, None)
+        assert chosen[-1] == name and all(up in chosen[:chosen.index(n)] for n in chosen for up in stages[n].upstream)
 
 
 def test_ground_truth_is_structurally_private(monkeypatch):
