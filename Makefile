@@ -11,10 +11,11 @@ PY := .venv/bin/python
 .PHONY: all stage test bench bench-refine profile results report sweep clean setup status view
 
 setup: .venv/.installed
-.venv/.installed: requirements.txt
+# an editable install: the checkout is the code that runs; pyproject.toml lists what it needs
+.venv/.installed: pyproject.toml
 	python3 -m venv .venv
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -r requirements.txt
+	$(PY) -m pip install -q -e ".[dask,dev]"
 	$(PY) -c "from manifoldneus.grid_encoding import fused_kernel; fused_kernel()"  # builds the CPU grid kernel once
 	touch $@
 
@@ -54,7 +55,7 @@ results: setup
 	$(PY) bench/results_md.py
 
 report: setup
-	$(PY) bench/report.py --scene $(SCENE) $(ARGS)
+	$(PY) pipeline.py report --scene $(SCENE) $(ARGS)
 
 # the supplement's experiments (Tables A3-A6, Fig. A7, Sec. 4.4 sparse views) on the pipeline's cache
 sweep: setup

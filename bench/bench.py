@@ -7,7 +7,7 @@
 
 A system is a pipeline preset (ManifoldNeuS: the default parameters) plus the stages it is charged
 with. Each scene and preset is one run: by default in this process, one after the other; with
-``--executor`` side by side on Dask workers (manifoldneus/executor.py). Versions are shared by
+``--executor`` side by side on Dask workers (runner/executor.py). Versions are shared by
 fingerprint, so a stage common to several systems (ingest, the front-end, the reference) is
 computed once, before the runs fan out, and the wall time in its manifest is counted for each
 system that uses it.
@@ -39,7 +39,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import pipeline  # noqa: E402
-from manifoldneus import executor, io  # noqa: E402
+from manifoldneus import io
+from runner import executor  # noqa: E402
 
 FRONT_END = ("features", "matching", "covisibility", "spectral", "schedule")
 NEURAL = ("anchors", "successors", "mesh")
@@ -81,15 +82,18 @@ class Run:
     error: str | None = None  # the run failed: its rows are empty
 
 
-def last_stage_per_preset(systems: list[System], until: str | None) -> dict[str | None, str]:
-    """Preset -> the last stage to run: what its systems are scored by, cut at `--until`."""
+def targets_per_preset(systems: list[System], until: str | None) -> dict[str | None, list[str]]:
+    """Preset -> the stages its runs bring up to date (with what they depend on): what its systems
+    are scored by, each cut at `--until`."""
     order = list(pipeline.load_stages())
     if until is not None and until not in order:
         raise pipeline.PipelineError(f"unknown stage {until!r} for --until (stages: {', '.join(order)})")
-    out: dict[str | None, str] = {}
+    out: dict[str | None, list[str]] = {}
     for s in systems:
-        last = max(out.get(s.preset, s.scored_by), s.scored_by, key=order.index)
-        out[s.preset] = last if until is None else min(last, until, key=order.index)
+        target = s.scored_by if until is None else min(s.scored_by, until, key=order.index)
+        out.setdefault(s.preset, [])
+        if target not in out[s.preset]:
+            out[s.preset].append(target)
     return out
 
 
@@ -113,10 +117,10 @@ def run_systems(scenes: list[str], systems: list[System], overrides: list[str], 
     `executor_name`. Versions that runs share (the front-end, the reference) are computed once,
     forced stages included, before the runs fan out. Returns scene -> its runs."""
     stages = pipeline.load_stages()
-    last = last_stage_per_preset(systems, until)
+    targets = targets_per_preset(systems, until)
     specs = [executor.RunSpec(f"{scene} {preset or 'default'}", scene,
-                              dict(until=stage, overrides=overrides, preset=preset, artifacts=artifacts, force=force))
-             for scene in scenes for preset, stage in last.items()]
+                              dict(until=wanted, overrides=overrides, preset=preset, artifacts=artifacts, force=force))
+             for scene in scenes for preset, wanted in targets.items()]
     outcomes = {o.name: o for o in executor.run_all(specs, executor_name, workers)}
     computed = set().union(*(o.computed for o in outcomes.values()))  # (stage, fingerprint) of this sitting
     runs: dict[str, list[Run]] = {}
@@ -194,7 +198,7 @@ def system_result(system: System, run: Run, store: pipeline.Store) -> dict:
         **({"error": run.error} if run.error else {}),
         "scored_by": system.scored_by,
         "stages": stages,
-        "missing_stages": [s for s in charged if s not in rows],
+        "missing_stages": [s for s in dict.fromkeys((*charged, system.scored_by)) if s not in rows],
         "wall_seconds": round(sum(r["wall_seconds"] for r in stages.values()), 2),
         "peak_rss_mib": max((r["peak_rss_mib"] for r in stages.values()), default=None),
         **scores,

@@ -51,7 +51,8 @@ import numpy as np  # noqa: E402
 from scipy.stats import rankdata  # noqa: E402
 
 import pipeline  # noqa: E402
-from manifoldneus import executor, io  # noqa: E402
+from manifoldneus import io
+from runner import executor  # noqa: E402
 from manifoldneus.config import ParamError  # noqa: E402
 from manifoldneus.scenes import SceneError  # noqa: E402
 
@@ -419,7 +420,7 @@ def run_sweep(table: str, scene: str = "scan24", values: list[str] | None = None
               out_root: Path = ROOT / "bench", tag: str = "", executor_name: str = "in-process",
               workers: int | None = None) -> dict:
     """Run every setting of a table, print its markdown table, write the JSON; returns the result.
-    Each setting is one run of `executor_name` (module docstring of manifoldneus/executor.py)."""
+    Each setting is one run of `executor_name` (module docstring of runner/executor.py)."""
     settings = settings_for(table, values)
     stages = pipeline.load_stages()
     for s in settings:  # every override is checked before hours of computing start

@@ -2,11 +2,10 @@
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-# As in pipeline.py, but before anything imports torch (manifoldneus below does): busy-waiting
+# As in runner/__init__.py, but before anything imports torch (manifoldneus below does): busy-waiting
 # OpenMP threads made the neural tests about 3x slower on a shared 2-core machine.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -14,7 +13,6 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
 from manifoldneus import io, scenes  # noqa: E402
 

@@ -8,6 +8,10 @@ import pytest
 
 import manifoldneus
 import pipeline
+import runner
+import runner.common
+import runner.fingerprint
+import runner.store
 from manifoldneus.config import ParamError
 from manifoldneus.scenes import SceneError
 from tests.conftest import TINY, needs_dtu
@@ -101,24 +105,24 @@ def test_force_recomputes(artifacts):
 
 def test_code_change_makes_stage_stale(artifacts, monkeypatch):
     pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
-    monkeypatch.setattr(pipeline, "code_hash", lambda stage: "edited")
+    monkeypatch.setattr(runner.fingerprint, "code_hash", lambda stage: "edited")
     st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
     assert st["ingest"][0] == "stale" and any("code" in r for r in st["ingest"][1])
 
 
 def test_code_hash_covers_package_modules():
     stages = pipeline.load_stages()
-    files = {p.relative_to(pipeline.ROOT).as_posix() for p in pipeline._code_files(stages["ingest"].module)}
+    files = {p.relative_to(pipeline.ROOT).as_posix() for p in runner.fingerprint._code_files(stages["ingest"].module)}
     assert {"stages/ingest.py", "manifoldneus/scenes.py", "manifoldneus/io.py", "manifoldneus/config.py",
             "manifoldneus/cameras.py"} <= files
     # imported only inside functions (scenes.py, evaluate.py): still the stages' code
     assert "manifoldneus/synthetic.py" in files
-    evaluate = {p.name for p in pipeline._code_files(stages["evaluate"].module)}
+    evaluate = {p.name for p in runner.fingerprint._code_files(stages["evaluate"].module)}
     assert "synthetic.py" in evaluate
     # ...but not modules the stage never reaches, nor the stage registry
     assert "train.py" not in files and "stages/__init__.py" not in files
     # the C++ a reached module compiles at run time is part of the stage's code
-    anchors = {p.relative_to(pipeline.ROOT).as_posix() for p in pipeline._code_files(stages["anchors"].module)}
+    anchors = {p.relative_to(pipeline.ROOT).as_posix() for p in runner.fingerprint._code_files(stages["anchors"].module)}
     assert "manifoldneus/csrc/grid_encoding.cpp" in anchors and "manifoldneus/csrc/grid_encoding.cpp" not in files
 
 
@@ -127,7 +131,7 @@ def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_p
     copy = tmp_path / "src"
     for folder in ("manifoldneus", "stages"):
         shutil.copytree(pipeline.ROOT / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
-    monkeypatch.setattr(pipeline, "ROOT", copy)
+    monkeypatch.setattr(runner.common, "ROOT", copy)
     pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
     assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
 
@@ -199,6 +203,19 @@ def test_cli_reports_errors_without_traceback(capsys, artifacts):
     assert code == 2 and "below the minimum" in capsys.readouterr().err
 
 
+def test_a_multi_scene_run_as_a_script_reports_a_bad_stage_in_one_line(artifacts):
+    """Run as a script, pipeline.py is `__main__`: the executor's errors must be the classes the CLI
+    catches (it once imported a second copy of the runner and printed `error: PipelineError: ...`)."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, str(pipeline.ROOT / "pipeline.py"), "run", "--scene", "synthetic",
+                           "--scene", "synthetic-1", "--until", "nope", "--artifacts", str(artifacts)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith("error: unknown stage 'nope' for --until"), done.stderr
+
+
 def test_cli_status_show_params_diff_gc(capsys, artifacts):
     args = ["--scene", "synthetic", "--artifacts", str(artifacts)]
     sets = sum((["--set", s] for s in FAST_SYNTH), [])
@@ -251,7 +268,7 @@ def test_gc_acts_only_on_versions_it_wrote_inside_the_artifacts_root(capsys, tmp
     assert pipeline.main(["gc", "--artifacts", str(artifacts), "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert "would remove 1 old version(s)" in out and "MiB" in out
-    old = [p for p in (artifacts / "synthetic" / "ingest").iterdir() if pipeline._our_version(p.parent, p)
+    old = [p for p in (artifacts / "synthetic" / "ingest").iterdir() if runner.store._our_version(p.parent, p)
            and p.name != pipeline.Store(artifacts, "synthetic").current("ingest")]
     assert len(old) == 1 and old[0].is_dir()
     assert pipeline.main(["gc", "--scene", "synthetic", "--artifacts", str(artifacts)]) == 0
@@ -381,6 +398,27 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path):
                 assert store.is_complete(stage, entry.name), f"partial version visible: {entry}"
 
 
+def test_ctrl_c_while_a_version_folder_is_being_set_up_leaves_no_temporary_folder(artifacts, monkeypatch):
+    """The signal of the test above can land between creating a stage's temporary folder and the
+    `try` that moves it aside; it is held until the folder is set up, then acts as anywhere else."""
+    import os
+    import signal
+
+    import runner.execute
+
+    real = runner.execute._stage_logger
+
+    def interrupted_while_setting_up(stage, path):
+        os.kill(os.getpid(), signal.SIGINT)  # arrives at the worst moment: the folder exists, no `try` yet
+        return real(stage, path)
+
+    monkeypatch.setattr(runner.execute, "_stage_logger", interrupted_while_setting_up)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    names = [p.name for p in pipeline.Store(artifacts, "synthetic").stage_dir("ingest").iterdir()]
+    assert not [n for n in names if n.startswith(".tmp-")] and any(n.startswith(".failed-") for n in names), names
+
+
 def test_a_damaged_version_is_named_and_never_read(capsys, artifacts):
     pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
     store = pipeline.Store(artifacts, "synthetic")
@@ -419,7 +457,7 @@ def test_upstream_recomputed_to_the_same_bytes_leaves_downstream_fresh(artifacts
     copy = tmp_path / "src"
     for folder in ("manifoldneus", "stages"):
         shutil.copytree(pipeline.ROOT / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
-    monkeypatch.setattr(pipeline, "ROOT", copy)
+    monkeypatch.setattr(runner.common, "ROOT", copy)
     pipeline.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
     stage = copy / "stages" / "ingest.py"
     stage.write_text(stage.read_text() + "\n# a comment-only edit\n")
@@ -443,6 +481,9 @@ def test_until_brings_up_only_the_stages_it_depends_on():
     assert anchors == ["ingest", "features", "matching", "covisibility", "spectral", "schedule", "reference", "anchors"]
     assert pipeline.select(stages, "evaluate_poses", None) == ["ingest", "ground_truth", "reference", "evaluate_poses"]
     assert pipeline.select(stages, None, None) == list(stages)  # the whole DAG, in order
+    # several stages: the union of their closures (a bench scores pycolmap and the rounds in one run)
+    both = pipeline.select(stages, ["evaluate", "evaluate_poses"], None)
+    assert set(both) == set(pipeline.select(stages, "evaluate", None)) | {"ground_truth", "evaluate_poses"}
     for name in stages:  # every selection is closed under upstream and in DAG order
         chosen = pipeline.select(stages, name, None)
         assert chosen[-1] == name and all(up in chosen[:chosen.index(n)] for n in chosen for up in stages[n].upstream)
@@ -509,11 +550,19 @@ def test_exponent_floats_without_a_dot_are_numbers():
         pipeline.resolve_params(stages, overrides=["anchors.pose_lr=fast"])
 
 
-def test_the_package_never_imports_the_stages():
-    """manifoldneus/ is the shared maths and readers; stages/ depend on it, never the reverse."""
-    for path in sorted((pipeline.ROOT / "manifoldneus").glob("*.py")):
-        names = pipeline._imported_names(path, f"manifoldneus.{path.stem}")
-        assert not [n for n in names if n == "stages" or n.startswith("stages.")], path.name
+def test_imports_point_one_way():
+    """pipeline.py (the CLI) -> runner -> stages -> manifoldneus, never back up: no file of a layer
+    imports a layer above it (anywhere in the file, function bodies included), so no chain of
+    imports can either."""
+    above = {"manifoldneus": ("stages", "runner", "pipeline", "bench"), "stages": ("runner", "pipeline", "bench"),
+             "runner": ("pipeline", "bench")}
+    for package, forbidden in above.items():
+        files = sorted((pipeline.ROOT / package).rglob("*.py"))
+        assert files, package
+        for path in files:
+            module = ".".join(path.relative_to(pipeline.ROOT).with_suffix("").parts).removesuffix(".__init__")
+            names = runner.fingerprint._imported_names(path, module)
+            assert not [n for n in names if n.split(".")[0] in forbidden], (path, sorted(names))
 
 
 @pytest.mark.parametrize("text, message", [

@@ -1,4 +1,4 @@
-"""bench/report.py: the report page built from the tiny synthetic pipeline's artifacts (default run
+"""runner/report.py (`pipeline.py report`): the report page built from the tiny synthetic pipeline's artifacts (default run
 and the neus-barf preset; neus-colmap left out, so the page must name it missing), and the
 Fig. A1 helpers on hand-made numbers."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from test_end_to_end import TINY, current
 
 import pipeline
-from bench import report
+from runner import report
 from manifoldneus import io
 
 
@@ -110,7 +110,8 @@ def test_rotation_error_per_view_from_placement_to_the_last_round(built_report):
     assert np.mean(last) == pytest.approx(mean, abs=2e-3)
 
 
-def test_a_scene_never_run_is_an_error_saying_what_to_run(tmp_path):
-    with pytest.raises(SystemExit, match=r"no artifacts of scene 'synthetic' .* run `make all SCENE=synthetic`"):
-        report.main(["--artifacts", str(tmp_path / "artifacts")])
+def test_a_scene_never_run_is_an_error_saying_what_to_run(tmp_path, capsys):
+    assert pipeline.main(["report", "--artifacts", str(tmp_path / "artifacts")]) == 2  # the default scene, as `run`
+    assert re.search(r"^error: no artifacts of scene 'synthetic' .* run `make all SCENE=synthetic`",
+                     capsys.readouterr().err, re.M)
     assert not (tmp_path / "artifacts").exists()  # nothing written

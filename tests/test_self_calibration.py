@@ -78,7 +78,7 @@ def test_use_calibration_false_starts_from_the_uncalibrated_guess(tmp_path):
 def test_the_calibration_gives_every_training_views_lines_of_sight(tmp_path):
     """anchors.sight_lines_from=calibration: the self-calibration's reconstruction's lines of sight, brought
     onto the anchors' frame, start at every training view's camera centre, not only the anchors'."""
-    pipeline.run("synthetic", until="anchors", artifacts=tmp_path, overrides=[
+    pipeline.run("synthetic", until=["anchors", "ground_truth"], artifacts=tmp_path, overrides=[
         *UNMASKED, *OFF, "anchors.intrinsics=refine", "anchors.sight_lines_from=calibration"])
     store = pipeline.Store(tmp_path, "synthetic")
     anchors = store.version_dir("anchors", store.current("anchors"))

@@ -3,7 +3,7 @@
 A command lists its pipeline runs as `RunSpec`s; `run_all` runs them and yields one `Outcome` per
 run as it completes. Stages that two or more runs of a scene share (same parameters, code and
 upstream: one version) are computed first, once per scene, by one preparation task; then the
-runs fan out. Each version is computed under its own lock (`pipeline.Store.computing`), so two
+runs fan out. Each version is computed under its own lock (`runner.Store.computing`), so two
 tasks never compute one version, and a rerun reuses what the cache holds. A run that fails is an
 outcome with an error, named on its progress line; the others go on.
 
@@ -29,6 +29,8 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
+import runner
+
 EXECUTORS = ("in-process (default) | dask (a LocalCluster here) | dask://HOST:PORT (an existing scheduler) | "
              "slurm[:CONFIG] (dask-jobqueue's SLURMCluster, from dask's jobqueue.slurm config or jobqueue.CONFIG)")
 GIB_PER_RUN = 3  # a scan24 run peaks at 2.4 GiB: what a LocalCluster leaves each worker
@@ -40,13 +42,13 @@ class RunSpec:
 
     name: str    # in progress lines, failures and results
     scene: str
-    args: dict   # `pipeline.run`'s keyword arguments besides the scene: overrides, preset, until, artifacts, ...
+    args: dict   # `runner.run`'s keyword arguments besides the scene: overrides, preset, until, artifacts, ...
 
 
 @dataclass
 class Outcome:
     name: str
-    report: dict | None = None   # pipeline.RunReport: stage -> computed | reused, and its `fingerprints`
+    report: dict | None = None   # runner.RunReport: stage -> computed | reused, and its `fingerprints`
     computed: set = field(default_factory=set)  # (stage, fingerprint) of each version it computed
     error: str | None = None     # one line; the run's traceback is in `traceback` (and a stage's in its log.txt)
     traceback: str = ""
@@ -87,16 +89,14 @@ def _recipes(spec: RunSpec) -> tuple[tuple, dict[str, str], bool]:
     """((artifacts, scene), stage -> recipe of each stage the run brings up to date, wants a GPU).
     A recipe is the fingerprint with upstream stages entered by their recipes (no store): runs with
     equal recipes for a stage need one version of it."""
-    import pipeline
-
     a = spec.args
-    stages = pipeline.load_stages()
-    resolved = pipeline.resolve_params(stages, a.get("params_path", pipeline.DEFAULT_PARAMS), a.get("overrides", ()),
+    stages = runner.load_stages()
+    resolved = runner.resolve_params(stages, a.get("params_path", runner.DEFAULT_PARAMS), a.get("overrides", ()),
                                        a.get("profile"), a.get("preset"))
-    scene = pipeline.resolve_scene(spec.scene, a.get("data_root"))
-    fps = pipeline.compute_fingerprints(stages, resolved, scene)
-    selected = pipeline.select(stages, a.get("until"), a.get("only"))
-    where = (str(os.path.abspath(a.get("artifacts", pipeline.DEFAULT_ARTIFACTS))), scene.name)
+    scene = runner.resolve_scene(spec.scene, a.get("data_root"))
+    fps = runner.compute_fingerprints(stages, resolved, scene)
+    selected = runner.select(stages, a.get("until"), a.get("only"))
+    where = (str(os.path.abspath(a.get("artifacts", runner.DEFAULT_ARTIFACTS))), scene.name)
     return where, {s: fps[s]["fingerprint"] for s in selected}, resolved["run"].device.startswith("cuda")
 
 
@@ -128,11 +128,9 @@ _ONE_RUN_AT_A_TIME = threading.Lock()
 
 def _run(name: str, calls: list[tuple[str, dict]], capture: bool, preparation: bool = False,
          after: Outcome | None = None) -> Outcome:
-    """Task: `pipeline.run(scene, **args)` for each call, in order; never raises (a failure is the outcome's)."""
+    """Task: `runner.run(scene, **args)` for each call, in order; never raises (a failure is the outcome's)."""
     if after is not None and after.error:
         return Outcome(name, error=f"its scene's shared stages failed: {after.error}")
-    import pipeline
-
     out = Outcome(name, where=_worker_address(), preparation=preparation)
     console = io.StringIO()
     started = time.time()
@@ -143,7 +141,7 @@ def _run(name: str, calls: list[tuple[str, dict]], capture: bool, preparation: b
                     stack.enter_context(contextlib.redirect_stdout(console))
                     stack.enter_context(contextlib.redirect_stderr(console))
                 for scene, args in calls:
-                    out.report = pipeline.run(scene, **args)
+                    out.report = runner.run(scene, **args)
                     out.computed |= {(s, out.report.fingerprints[s]) for s, how in out.report.items() if how == "computed"}
         except Exception as e:  # noqa: BLE001 - one run's failure must not stop the others
             stage, log_path = getattr(e, "stage_failed", (None, None))

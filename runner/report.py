@@ -1,9 +1,8 @@
-#!/usr/bin/env python
 """Report: one self-contained ``report.md`` (PNGs beside it) comparing the systems on a scene,
 built only from existing artifacts. It never trains: a system whose artifacts are missing is
 named as missing and the report goes on.
 
-    python bench/report.py --scene scan24 [--artifacts DIR] [--out DIR]     # or: make report SCENE=scan24
+    python pipeline.py report [--scene S] [--artifacts DIR] [--data-root DIR] [--out DIR]   # or: make report SCENE=S
 
 Systems: ManifoldNeuS (the default run), the presets ``neus-barf`` and ``neus-colmap`` (their
 ``current@<preset>`` pointers) and the pycolmap reference (stages ``reference`` + ``evaluate_poses``).
@@ -20,21 +19,18 @@ computed here from the rounds' poses with :func:`manifoldneus.pose_metrics.evalu
 """
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import math
 import shutil
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-import pipeline  # noqa: E402
-from manifoldneus import artifacts, io, pose_metrics  # noqa: E402
+from manifoldneus import artifacts, io, pose_metrics
+from manifoldneus.scenes import SceneError, resolve_scene
+from runner.common import DEFAULT_ARTIFACTS, PipelineError
+from runner.store import Store
 
 SYSTEMS = {"ManifoldNeuS": None, "NeuS-BARF": "neus-barf", "NeuS-COLMAP": "neus-colmap",
            "SfM-all + NeuS": "sfm-all"}  # name -> preset
@@ -52,7 +48,7 @@ class Pointers:
 
     def __init__(self, artifacts: Path, scene: str, preset: str | None):
         self.preset = preset
-        self.store = pipeline.Store(artifacts, scene, preset)
+        self.store = Store(artifacts, scene, preset)
 
     def get(self, stage: str) -> Path | None:
         fp = self.store.current(stage)
@@ -573,20 +569,20 @@ def _nanmean(x) -> float:
     return float(x[np.isfinite(x)].mean()) if np.isfinite(x).any() else float("nan")
 
 
-def scene_dir_name(scene: str) -> str:
+def scene_dir_name(scene: str, data_root=None) -> str:
     """The artifacts folder name of a scene (as the runner names it; the name itself if the data is absent)."""
     try:
-        return pipeline.resolve_scene(scene).name
-    except pipeline.SceneError:
+        return resolve_scene(scene, data_root).name
+    except SceneError:
         return scene
 
 
-def build_report(scene: str, artifacts: Path = pipeline.DEFAULT_ARTIFACTS, out: Path | None = None) -> Path:
+def build_report(scene: str, artifacts: Path = DEFAULT_ARTIFACTS, out: Path | None = None, data_root=None) -> Path:
     """Write ``report.md`` (+ PNGs, ``report.json``) for ``scene``; returns the page's path."""
-    name = scene_dir_name(scene)
+    name = scene_dir_name(scene, data_root)
     if not (Path(artifacts) / name / "ingest").is_dir():
-        raise SystemExit(f"error: no artifacts of scene {scene!r} in {artifacts}: run `make all SCENE={scene}` "
-                         f"(or `python pipeline.py run --scene {scene}`) first; the report never trains")
+        raise PipelineError(f"no artifacts of scene {scene!r} in {artifacts}: run `make all SCENE={scene}` "
+                            f"(or `python pipeline.py run --scene {scene}`) first; the report never trains")
     out = Path(out) if out is not None else Path(artifacts) / name / "report"
     out.mkdir(parents=True, exist_ok=True)
     systems = {system: Pointers(artifacts, name, preset) for system, preset in SYSTEMS.items()}
@@ -622,18 +618,3 @@ def build_report(scene: str, artifacts: Path = pipeline.DEFAULT_ARTIFACTS, out: 
         "pose_errors": {s: [{k: r[k] for k in ("label", "n_views", "summary")} for r in rr] for s, rr in rows.items()},
         "easy_view_bias": bias, "top_p": TOP_P})
     return out / "report.md"
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scene", default="synthetic", help="the scene (default synthetic, as pipeline.py run)")
-    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS, help="the artifacts folder")
-    ap.add_argument("--out", type=Path, default=None, help="output folder (default: <artifacts>/<scene>/report)")
-    args = ap.parse_args(argv)
-    path = build_report(args.scene, args.artifacts, args.out)
-    print(f"wrote {path}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
