@@ -72,6 +72,8 @@ def _coerce(key: str, value: Any, typ) -> Any:
             raise ParamError(f"{key}: expected a finite number, got {value!r}")
         return float(value)
     if typ is str:
+        if isinstance(value, bool):  # YAML 1.1 reads on/off (and yes/no) as booleans: `crop_to_object: off`
+            value = "on" if value else "off"
         if not isinstance(value, str):
             raise ParamError(f"{key}: expected a string, got {value!r}")
         return value

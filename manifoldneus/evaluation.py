@@ -97,11 +97,14 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
     if p.drop_sphere_closure and len(mesh.faces):
         mesh, culled = meshing.keep_vertices(mesh, meshing.off_sphere_closure(
             np.asarray(mesh.vertices), trainer.rp.radius, p.resolution)), True
-    crop = p.crop_to_object == "on" or (p.crop_to_object == "auto" and masks is None)
+    # the crop's keys are read only where there is something to crop to: a caller without a region
+    # (the GT-pose reference) need not declare them, so they do not enter its fingerprint
+    crop = (region is not None or object_points is not None) and (
+        p.crop_to_object == "on" or (p.crop_to_object == "auto" and masks is None))
     if crop and region is not None and len(mesh.faces):
         mesh, culled = meshing.keep_vertices(mesh, region.contains(np.asarray(mesh.vertices),
                                                                    p.support_margin * region.radius)), True
-    if (crop and p.silhouette_vote > 0 and object_points is not None and len(object_points) and K is not None
+    if (crop and object_points is not None and len(object_points) and K is not None and p.silhouette_vote > 0
             and len(mesh.faces)):
         silhouettes = meshing.point_silhouettes(object_points, K, w2c, hw)  # [N,H,W]
         mesh = meshing.cull_by_masks(mesh, K, w2c, silhouettes, p.cull_dilation, min_fraction=p.silhouette_vote)

@@ -27,7 +27,10 @@ class Params:
 
 
 UPSTREAM = ("ingest", "ground_truth")
-SECTIONS = ("reference_surface", "train", "field", "render", "loss", "meshing", "run", "split", "novel_views")
+# meshing: the keys of a mesh without an object crop (the crop needs the method's SfM region)
+SECTIONS = ("reference_surface", "train", "field", "render", "loss", "run", "split", "novel_views",
+            *(f"meshing.{k}" for k in ("resolution", "keep_components", "drop_sphere_closure", "cull_by_masks",
+                                       "cull_dilation", "cull_unseen", "visibility_size", "preview_size")))
 OUTPUTS = ("reference.json",)
 
 

@@ -546,6 +546,9 @@ def test_exponent_floats_without_a_dot_are_numbers():
     stages = pipeline.load_stages()
     resolved = pipeline.resolve_params(stages, overrides=["anchors.pose_lr=5e-4"])
     assert resolved["anchors"].pose_lr == 5e-4
+    # and on/off, which YAML reads as booleans, are the words of a choice
+    for word in ("on", "off"):
+        assert pipeline.resolve_params(stages, overrides=[f"meshing.crop_to_object={word}"])["meshing"].crop_to_object == word
     with pytest.raises(ParamError, match="anchors.pose_lr: expected a number"):
         pipeline.resolve_params(stages, overrides=["anchors.pose_lr=fast"])
 
@@ -718,6 +721,11 @@ def test_a_stage_declaring_one_key_of_a_section_is_not_rerun_by_the_others(tmp_p
     assert ctx.section("run").device == "cpu"
     with pytest.raises(pipeline.PipelineError, match=r"mesh reads run.threads without declaring it"):
         ctx.section("run").threads
+    # the GT-pose reference meshes without the object crop: the crop's keys do not retrain it
+    for key in ("meshing.silhouette_vote=0.5", "meshing.crop_to_object=off", "meshing.support_margin=0.1"):
+        own_crop = pipeline.own_ingredients(stages, pipeline.resolve_params(stages, overrides=[*TINY, key]), scene)
+        changed = {name for name in stages if own_base[name]["params"] != own_crop[name]["params"]}
+        assert changed == {"mesh"}, (key, changed)
     broken = pipeline.Stage("mesh", stages["mesh"].module, (), ("meshing", "run.devices"), ())
     with pytest.raises(pipeline.PipelineError, match=r"declares \['run.devices'\]: no such key"):
         pipeline.stage_params(broken, base)
