@@ -162,6 +162,37 @@ def test_marching_cubes_sphere_radius():
     assert 0.3 * len(mesh.faces) < len(culled.faces) < 0.7 * len(mesh.faces)
 
 
+def test_mask_culling_tolerance_scales_with_the_image_and_drops_a_loop_outside_the_masks():
+    """The default dilation is a fraction of the image side: surface a pose error's or a mask edge's
+    few pixels outside the silhouettes stays, a thin loop 10 px outside them at 384 px (scan24's
+    floater above the roof) goes, and the same geometry behaves the same in 800 px images."""
+    import trimesh
+
+    from manifoldneus.evaluation import MeshParams, side_fraction_px
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    ring = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    for size in (384, 800):
+        f = 1.2 * size
+        K, w2c = ring_cameras(8, dist=3.0, f=f, size=size, elev=0.3)
+        masks = np.stack([analytic_hit(k, w, size, 0.5)[0] for k, w in zip(K, w2c)])  # [N,H,W] the ball's silhouettes
+        px_per_unit = f / 3.0  # at the ball's distance
+        loops = {}
+        for name, px_out in (("near", 3.0), ("loop", 10.0)):  # rings above the ball, px outside its silhouettes
+            r = 0.5 + px_out * size / 384 / px_per_unit
+            loops[name] = np.stack([r * np.cos(ring), r * np.sin(ring), np.zeros_like(ring)], 1) + [0, 0, 0.0]
+        V = np.concatenate([ball.vertices, loops["near"], loops["loop"]])
+        n_ball, n = len(ball.vertices), len(ring)
+        faces = [*ball.faces, *[[n_ball + i, n_ball + (i + 1) % n, n_ball + i] for i in range(n)],
+                 *[[n_ball + n + i, n_ball + n + (i + 1) % n, n_ball + n + i] for i in range(n)]]
+        mesh = trimesh.Trimesh(V, np.array(faces), process=False)
+        kept = cull_by_masks(mesh, K, w2c, masks, dilation=side_fraction_px(MeshParams().cull_dilation, (size, size)))
+        kept_v = {tuple(np.round(v, 9)) for v in np.asarray(kept.vertices)}
+        assert all(tuple(np.round(v, 9)) in kept_v for v in ball.vertices), size
+        assert all(tuple(np.round(v, 9)) in kept_v for v in loops["near"]), size
+        assert not any(tuple(np.round(v, 9)) in kept_v for v in loops["loop"]), size
+
+
 def test_cull_unseen_keeps_the_visible_cap():
     r, dist = 0.6, 3.0
     mesh = extract_mesh(lambda x: np.linalg.norm(x, axis=1) - r, resolution=64)
