@@ -5,6 +5,7 @@ a version's files (what downstream fingerprints use)."""
 from __future__ import annotations
 
 import ast
+import functools
 import hashlib
 import json
 import os
@@ -35,13 +36,31 @@ def _module_file(name: str) -> Path | None:
     return None
 
 
+def _syntax_tree(path: Path) -> ast.Module:
+    """The file's syntax tree, parsed once per content: every run and status hashes the code of all
+    stages, and parsing the same ~40 files for each of them took 2-3 s a call."""
+    stat = path.stat()
+    return _parse(path, stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=512)
+def _parse(path: Path, mtime_ns: int, size: int) -> ast.Module:
+    return ast.parse(path.read_bytes(), filename=str(path))
+
+
 def _imported_names(path: Path, module_name: str) -> set[str]:
     """Every module name an import statement in the file may refer to, wherever the statement is
     (module level or inside a function body): read from the syntax tree, not from what is loaded."""
+    stat = path.stat()
+    return set(_imported_names_of(path, module_name, stat.st_mtime_ns, stat.st_size))
+
+
+@functools.lru_cache(maxsize=512)
+def _imported_names_of(path: Path, module_name: str, mtime_ns: int, size: int) -> frozenset[str]:
     is_package = path.name == "__init__.py"
     package = module_name if is_package else module_name.rpartition(".")[0]
     names: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    for node in ast.walk(_syntax_tree(path)):
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -54,13 +73,13 @@ def _imported_names(path: Path, module_name: str) -> set[str]:
             names.add(source)
             # `from pkg import mod` names a module; `from mod import func` does not (no such file).
             names.update(f"{source}.{alias.name}" for alias in node.names)
-    return names
+    return frozenset(names)
 
 
 def _native_sources(path: Path) -> list[Path]:
     """Files a module compiles at run time, named by its literal ``__native_sources__`` (paths
     relative to the module's folder)."""
-    for node in ast.parse(path.read_text(), filename=str(path)).body:
+    for node in _syntax_tree(path).body:
         if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__native_sources__" for t in node.targets):
             return [path.parent / rel for rel in ast.literal_eval(node.value)]
     return []
