@@ -112,11 +112,14 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
     against = f"{pm(s['pycolmap_rot_deg'], '.3f')} deg for pycolmap's incremental SfM"
     if sfm_all.get("mean") is not None:
         against += f" and {pm(sfm_all, '.3f')} deg for SfM on every view at once (`--preset sfm-all`)"
-    psnr = s.get("psnr_masked", {})
+    psnr, gt_psnr = s.get("psnr_masked", {}), s.get("gt_pose_psnr_masked", {})
+    upper = (f" (NeuS on the ground-truth poses at equal iterations: {pm(gt_psnr, '.2f')} dB"
+             f"{', seed ' + str(sc['runs'][0]['seed']) if gt_psnr.get('n') == 1 else ''})"
+             if gt_psnr.get("mean") is not None else "")
     return (f"{GENERATED_BY}\n**Result** on {scene} (`make bench-refine`, {result['date'][:10]}, "
             f"seed{'s' if len(sc['runs']) > 1 else ''} {seeds}): mean camera rotation error "
             f"{pm(s['final_rot_deg'], '.3f')} deg, against {against}"
-            + (f"; held-out masked PSNR {pm(psnr, '.2f')} dB" if psnr.get("mean") is not None else "")
+            + (f"; held-out masked PSNR {pm(psnr, '.2f')} dB{upper}" if psnr.get("mean") is not None else "")
             + ". All figures: [Current results](#current-results).")
 
 

@@ -31,6 +31,18 @@ TINY = [
 ]
 
 
+# The longest test files (seconds of a whole run, 2026-11-25), run first: `make test` hands whole files
+# to its two workers in collection order, and a long file handed out last keeps one core busy after
+# the other has finished.
+LONGEST_FIRST = ("test_pipeline.py", "test_executor.py", "test_sweep.py", "test_self_calibration.py",
+                 "test_reproducible.py", "test_bench.py", "test_end_to_end.py", "test_ingest.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the order inside a file stays
+
+
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory):
     """(artifacts folder, run report) of one TINY run, shared by the test modules. Tests that run
