@@ -25,14 +25,14 @@ class MeshParams:
     resolution: int = param(192, "Marching-cubes grid resolution over the unit sphere's cube", lo=16, hi=1024)
     keep_components: int = param(1, "Keep this many largest connected components (0 = all)", lo=0)
     cull_by_masks: bool = param(True, "Cull vertices outside the training views' dilated masks (when masks exist)")
-    cull_dilation: float = param(0.015, "Mask dilation for culling, as a fraction of the image's longest side (0.015: "
-                                 "6 px at 384, 12 px at 800): the tolerance of the poses and the masks' edges. At 12 "
-                                 "px on scan24's 384 px images a thin loop of surface 8-12 px outside every mask above "
-                                 "the roof survived", lo=0.0, hi=0.2)
-    silhouette_dilation: float = param(0.03125, "Dilation of the SfM points' silhouettes (silhouette_vote), as a "
-                                       "fraction of the image's longest side (12 px at 384): the convex hull of "
+    cull_dilation: float = param(3.0, "Mask dilation for culling, in pixels of the images the field was trained on "
+                                 "(its surface is no sharper than they are): 6 px of scan24's 384 px masks at the "
+                                 "192 px training size, 12.5 px of 800 px ones. At 12 px on scan24 a thin loop of "
+                                 "surface 8-12 px outside every mask above the roof survived", lo=0.0)
+    silhouette_dilation: float = param(6.0, "Dilation of the SfM points' silhouettes (silhouette_vote), in pixels of "
+                                       "the training images (12 px of 384 px photos at 192): the convex hull of "
                                        "sparse points is a rougher silhouette than a mask; 4 px instead of 12 on "
-                                       "scan24's photos alone cost 0.3 mm of Chamfer", lo=0.0, hi=0.2)
+                                       "scan24's photos alone cost 0.3 mm of Chamfer", lo=0.0)
     cull_unseen: bool = param(True, "Cull surface that no training view sees (self-occlusion z-buffer)")
     drop_sphere_closure: bool = param(True, "Remove the surface marching cubes puts on the grid's bounding sphere where "
                                       "the SDF is still negative there (no view saw it as surface)")
@@ -100,6 +100,7 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
     frame) and the silhouettes of its ``object_points`` [P,3], when asked (K [N,3,3] and w2c [N,4,4] at image size
     hw = (H, W), the masks' size)."""
     mesh = meshing.extract_mesh(trainer.sdf_fn(), p.resolution, trainer.rp.radius, p.keep_components)
+    trained = (trainer.H, trainer.W)  # the culls' tolerances are in its pixels
     culled = False
     if p.drop_sphere_closure and len(mesh.faces):
         mesh, culled = meshing.keep_vertices(mesh, meshing.off_sphere_closure(
@@ -114,11 +115,12 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
     if (crop and object_points is not None and len(object_points) and K is not None and p.silhouette_vote > 0
             and len(mesh.faces)):
         silhouettes = meshing.point_silhouettes(object_points, K, w2c, hw)  # [N,H,W]
-        mesh = meshing.cull_by_masks(mesh, K, w2c, silhouettes, side_fraction_px(p.silhouette_dilation, hw),
+        mesh = meshing.cull_by_masks(mesh, K, w2c, silhouettes, image_px(p.silhouette_dilation, hw, trained),
                                      min_fraction=p.silhouette_vote)
         culled = True
     if p.cull_by_masks and masks is not None and len(mesh.faces):
-        mesh, culled = meshing.cull_by_masks(mesh, K, w2c, masks, dilation=side_fraction_px(p.cull_dilation, masks.shape[1:])), True
+        dilation = image_px(p.cull_dilation, masks.shape[1:], trained)
+        mesh, culled = meshing.cull_by_masks(mesh, K, w2c, masks, dilation=dilation), True
     if p.cull_unseen and K is not None and hw is not None and len(mesh.faces):
         mesh, culled = meshing.cull_unseen(mesh, K, w2c, hw, p.visibility_size), True
     if culled and p.keep_components > 0 and len(mesh.faces):
@@ -126,9 +128,9 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
     return mesh
 
 
-def side_fraction_px(fraction: float, hw) -> int:
-    """A length given as a fraction of the longest side of images of size hw = (H, W), in pixels."""
-    return int(round(fraction * max(hw)))
+def image_px(training_px: float, hw, trained_hw) -> int:
+    """A length in pixels of the training images (size trained_hw), in pixels of images of size hw."""
+    return int(round(training_px * max(hw) / max(trained_hw)))
 
 
 def save_mesh_with_preview(mesh, out_dir: Path, p: MeshParams, stem: str = "mesh", w2c=None) -> None:

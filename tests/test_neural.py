@@ -163,12 +163,12 @@ def test_marching_cubes_sphere_radius():
 
 
 def test_mask_culling_tolerance_scales_with_the_image_and_drops_a_loop_outside_the_masks():
-    """The default dilation is a fraction of the image side: surface a pose error's or a mask edge's
-    few pixels outside the silhouettes stays, a thin loop 10 px outside them at 384 px (scan24's
-    floater above the roof) goes, and the same geometry behaves the same in 800 px images."""
+    """The default dilation is in pixels of the training images (192 px): surface a pose error's or a
+    mask edge's few pixels outside the silhouettes stays, a thin loop 10 px outside them at 384 px
+    (scan24's floater above the roof) goes, and the same geometry behaves the same in 800 px images."""
     import trimesh
 
-    from manifoldneus.evaluation import MeshParams, side_fraction_px
+    from manifoldneus.evaluation import MeshParams, image_px
 
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     ring = np.linspace(0, 2 * np.pi, 24, endpoint=False)
@@ -186,7 +186,7 @@ def test_mask_culling_tolerance_scales_with_the_image_and_drops_a_loop_outside_t
         faces = [*ball.faces, *[[n_ball + i, n_ball + (i + 1) % n, n_ball + i] for i in range(n)],
                  *[[n_ball + n + i, n_ball + n + (i + 1) % n, n_ball + n + i] for i in range(n)]]
         mesh = trimesh.Trimesh(V, np.array(faces), process=False)
-        kept = cull_by_masks(mesh, K, w2c, masks, dilation=side_fraction_px(MeshParams().cull_dilation, (size, size)))
+        kept = cull_by_masks(mesh, K, w2c, masks, dilation=image_px(MeshParams().cull_dilation, (size, size), (192, 192)))
         kept_v = {tuple(np.round(v, 9)) for v in np.asarray(kept.vertices)}
         assert all(tuple(np.round(v, 9)) in kept_v for v in ball.vertices), size
         assert all(tuple(np.round(v, 9)) in kept_v for v in loops["near"]), size
