@@ -247,6 +247,14 @@ def summarise(rows: dict) -> dict:
     return out
 
 
+def grid_kernel_used() -> str:
+    """The neural grids' kernel in this process: "fused", or "torch: <why the fused one did not
+    load>" (a warning in the run's log only, and about twice the CPU time)."""
+    from manifoldneus import grid_encoding
+
+    return "fused" if grid_encoding.fused_kernel() is not None else f"torch: {grid_encoding.fused_unavailable_reason()}"
+
+
 def machine() -> dict:
     import psutil
 

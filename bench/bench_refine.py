@@ -262,6 +262,7 @@ def main(argv=None) -> int:
             print(f"== {scene}, seed {seed}", flush=True)
             runs.append(one_run(scene, seed, args.overrides, args.artifacts, seed in ref_seeds))
             result["scenes"][scene] = {"runs": runs, "summary": summarise(runs), "targets": targets(scene, runs)}
+            result["grid_kernel"] = bench.grid_kernel_used()
             io.save_json(path, result)  # after every run: a stopped bench keeps what it measured
     print(markdown(result))
     print(f"\nwrote {path}")

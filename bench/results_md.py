@@ -75,6 +75,16 @@ def provenance(path: Path, result: dict, root: Path) -> str:
     return line + "._"
 
 
+def kernel_note(result: dict) -> str:
+    """Where a bench's process ran the grids on torch's grid_sample instead of the fused kernel."""
+    kernel = result.get("grid_kernel", "fused")
+    if kernel == "fused":
+        return ""
+    return (f"; its process ran the grids on torch's grid_sample, not the fused kernel ({kernel.removeprefix('torch: ')}): "
+            "its times are of that slower path, and its figures may differ slightly from the default path's (the two "
+            "kernels sum in another order)")
+
+
 def rel(path: Path, root: Path) -> str:
     try:
         return Path(path).resolve().relative_to(root.resolve()).as_posix()
@@ -150,7 +160,7 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
                   f"_Measured {result['date'].replace('T', ' ')} on {m.get('cpu_model') or m['platform']}, {m['cpus']} "
                   f"CPUs; `{rel(refine[-1], root)}`"
                   + ("; with " + " ".join(f"`--set {o}`" for o in result["overrides"]) if result.get("overrides") else "")
-                  + "._", bench_refine.markdown(result)]
+                  + kernel_note(result) + "._", bench_refine.markdown(result)]
         if missing:
             parts.append("The sfm-all columns show \"-\": this JSON predates the `sfm-all` preset; "
                          "`make bench-refine` measures them.")

@@ -17,6 +17,7 @@ def test_refinement_bench_two_seeds(tmp_path, capsys):
     (path,) = (tmp_path / "bench" / "refine").glob("tiny-*.json")
     result = json.loads(path.read_text())
     runs = result["scenes"]["synthetic"]["runs"]
+    assert result["grid_kernel"] == "fused"  # the kernel make setup builds; a fallback would be recorded here
     assert [r["seed"] for r in runs] == [0, 1]
     for r in runs:
         labels = [x["label"] for x in r["rounds"]]
