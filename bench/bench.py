@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import pipeline  # noqa: E402
-from manifoldneus import io
+from manifoldneus import io  # noqa: E402
 from runner import executor  # noqa: E402
 
 FRONT_END = ("features", "matching", "covisibility", "spectral", "schedule")

@@ -51,7 +51,7 @@ import numpy as np  # noqa: E402
 from scipy.stats import rankdata  # noqa: E402
 
 import pipeline  # noqa: E402
-from manifoldneus import io
+from manifoldneus import io  # noqa: E402
 from runner import executor  # noqa: E402
 from manifoldneus.config import ParamError  # noqa: E402
 from manifoldneus.scenes import SceneError  # noqa: E402

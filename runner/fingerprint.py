@@ -48,11 +48,11 @@ def _parse(path: Path, mtime_ns: int, size: int) -> ast.Module:
     return ast.parse(path.read_bytes(), filename=str(path))
 
 
-def _imported_names(path: Path, module_name: str) -> set[str]:
+def _imported_names(path: Path, module_name: str) -> frozenset[str]:
     """Every module name an import statement in the file may refer to, wherever the statement is
     (module level or inside a function body): read from the syntax tree, not from what is loaded."""
     stat = path.stat()
-    return set(_imported_names_of(path, module_name, stat.st_mtime_ns, stat.st_size))
+    return _imported_names_of(path, module_name, stat.st_mtime_ns, stat.st_size)
 
 
 @functools.lru_cache(maxsize=512)
