@@ -46,6 +46,10 @@ class Params:
                                   "other rounds, 0 = the images' own size (coarse-to-fine over image resolution: "
                                   "the earlier rounds fit the field at train.image_size, the last one sharpens it "
                                   "and the poses on the full images; a step costs the same at any size)", lo=-1)
+    regate: str = param("all", "Which views' rays go through the coarse-to-fine gate again in each round: 'all' "
+                        "(every view of the round restarts at the coarse bands, the gate read per round) or 'new' "
+                        "(only the round's new views; the views earlier rounds optimised see every band of the "
+                        "field they fitted from the round's start)", choices=["all", "new"])
     pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
     max_rounds: int = param(0, "Stop after this many successor rounds (0 = all); later rounds' views stay unplaced "
                             "(the sweeps of bench/sweep.py only read round 1)", lo=0)
@@ -149,7 +153,8 @@ def run(ctx) -> None:
                              pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
                              carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
                              pose_ids=None if p.refine_placed else new, sfm_points=sfm_points,
-                             image_size=p.final_image_size if last and p.final_image_size >= 0 else None)
+                             image_size=p.final_image_size if last and p.final_image_size >= 0 else None,
+                             gated_ids=None if p.regate == "all" else new)
         summary = rnd.run(ctx, f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt")
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,

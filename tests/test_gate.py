@@ -63,3 +63,18 @@ def test_vectorised_over_rays():
     # rays of one view share weights
     i = view[0]
     assert torch.allclose(out[view == i], out[view == i][0].expand_as(out[view == i]))
+
+
+def test_views_outside_the_gate_see_every_band():
+    """successors.regate=new: only the round's new views go coarse-to-fine; the rays of views an earlier
+    round optimised read every band of the field they fitted, from the round's first step on."""
+    view = torch.arange(10).repeat(50)
+    s = torch.rand(10)
+    gated = torch.arange(10) >= 7  # views 7, 8, 9 are the round's new ones
+    for step in (0, 100, 333):
+        plain = band_weights(view, step, T, s, L, GateParams())
+        out = band_weights(view, step, T, s, L, GateParams(), gated)
+        new = gated[view]
+        assert torch.equal(out[new], plain[new])
+        assert torch.equal(out[~new], torch.ones_like(out[~new]))
+    assert (band_weights(view, 0, T, s, L, GateParams(), gated)[gated[view]] < 1).any()  # the new ones start coarse
