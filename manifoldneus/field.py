@@ -55,7 +55,10 @@ class FieldParams:
     # --- grid
     grid_levels: int = param(6, "grid: number of resolution levels (the gated bands)", lo=1, hi=16)
     grid_min_res: int = param(16, "grid: resolution of the coarsest level", lo=2)
-    grid_max_res: int = param(128, "grid: resolution of the finest level", lo=2, hi=512)
+    grid_max_res: int = param(128, "grid: resolution of the finest level", lo=2, hi=2048)
+    grid_hash_log2: int = param(0, "grid: a level with more than 2^this cells is a hash table of 2^this rows "
+                                "(instant-NGP's spatial hash: fine levels at a fixed memory; colliding cells share "
+                                "a row); 0 = every level dense", lo=0, hi=24)
     grid_channels: int = param(4, "grid: feature channels per level", lo=1, hi=32)
     grid_init_std: float = param(1e-3, "grid: std of the initial grid features", lo=0.0)
     grid_kernel: str = param("auto", "grid: look-up kernel: 'fused' (compiled CPU kernel, about half grid_sample's CPU time), "
@@ -261,9 +264,11 @@ class GridField(FieldBase):
         self.n_bands = p.grid_levels
         self.resolutions = level_resolutions(p.grid_levels, p.grid_min_res, p.grid_max_res)
         C = p.grid_channels
-        # channel-last tables [R,R,R,C] (grid_encoding's convention)
+        # channel-last tables, dense [R,R,R,C] or hashed [T,C] (grid_encoding's convention)
+        T = 2 ** p.grid_hash_log2 if p.grid_hash_log2 else None
         self.grids = nn.ParameterList(
-            [nn.Parameter(torch.randn(r, r, r, C) * p.grid_init_std) for r in self.resolutions]
+            [nn.Parameter(torch.randn(*((T,) if T and r ** 3 > T else (r, r, r)), C) * p.grid_init_std)
+             for r in self.resolutions]
         )
         # autograd gradients are differentiated again (Eikonal): only grid_sample's kernel allows it
         self.grid_kernel = "torch" if self.resolved_gradient_mode() == "analytic" else p.grid_kernel
@@ -300,7 +305,7 @@ class GridField(FieldBase):
     def grid_features(self, x, band_weights=None):
         lo, hi = self.aabb[:3], self.aabb[3:]
         u = (2.0 * (x - lo) / (hi - lo) - 1.0).to(self.grids[0].dtype)  # [N,3] in [-1,1]
-        f = encode(u, list(self.grids), self.grid_kernel)  # [N, L*C]
+        f = encode(u, list(self.grids), self.grid_kernel, self.resolutions)  # [N, L*C]
         if band_weights is None:
             return f
         L, n = len(self.grids), x.shape[0]

@@ -1,9 +1,12 @@
-"""Multi-level dense feature grids: trilinear look-up of L channel-last tables at points.
+"""Multi-level feature grids: trilinear look-up of L channel-last tables at points.
 
-Convention (owned here): level l is a parameter of shape [R_l, R_l, R_l, C] indexed [z, y, x, c];
-a point's normalised coordinate u in [-1, 1]^3 (x, y, z) maps to (u + 1) / 2 * (R_l - 1), as
-``grid_sample(mode="bilinear", padding_mode="zeros", align_corners=True)``; corners outside a table
-read zero. :func:`encode` returns the levels' features side by side, [N, L*C].
+Convention (owned here): a dense level l is a parameter of shape [R_l, R_l, R_l, C] indexed
+[z, y, x, c]; a point's normalised coordinate u in [-1, 1]^3 (x, y, z) maps to (u + 1) / 2 * (R_l - 1),
+as ``grid_sample(mode="bilinear", padding_mode="zeros", align_corners=True)``; corners outside a table
+read zero. A hashed level is a [T, C] table for a resolution R_l with R_l^3 > T cells: cell (x, y, z)
+reads row (x ^ 2654435761 y ^ 805459861 z) mod T in uint32 arithmetic (instant-NGP's spatial hash), so
+a fine level costs T rows whatever its resolution; colliding cells share a row. :func:`encode` returns
+the levels' features side by side, [N, L*C].
 
 Two kernels compute the same thing:
 
@@ -11,7 +14,8 @@ Two kernels compute the same thing:
   compiler (about 30 s, cached under ``~/.cache/manifoldneus``). One pass over the points for all
   levels forward, one backward (threads split the levels, so no atomics); about half the CPU time of
   ``grid_sample`` here (docs/PERFORMANCE.md). Not twice differentiable.
-* ``torch``: ``F.grid_sample`` per level; any device, twice differentiable.
+* ``torch``: ``F.grid_sample`` per dense level, a gather of the 8 corners' rows per hashed level;
+  any device, twice differentiable.
 
 ``kernel="auto"`` takes ``fused`` for CPU tensors when it builds, else ``torch`` (once, a warning
 names what is missing). A field whose SDF gradients come from autograd (their own gradient is taken
@@ -109,13 +113,36 @@ def resolve_kernel(kernel: str, device: torch.device) -> str:
     return "fused"
 
 
-def encode(u: torch.Tensor, tables, kernel: str = "auto") -> torch.Tensor:
-    """Features of the L tables (each [R,R,R,C]) at u [N,3] in [-1,1] -> [N, L*C]."""
+_PRIMES = (1, 2654435761, 805459861)
+
+
+def encode(u: torch.Tensor, tables, kernel: str = "auto", resolutions=None) -> torch.Tensor:
+    """Features of the L tables (each dense [R,R,R,C] or hashed [T,C]) at u [N,3] in [-1,1] -> [N, L*C].
+    resolutions: each level's R (needed for hashed levels; dense ones read it from their shape)."""
+    res = tuple(int(r) for r in resolutions) if resolutions is not None else tuple(int(t.shape[0]) for t in tables)
     if resolve_kernel(kernel, u.device) == "fused":
-        res = tuple(int(t.shape[0]) for t in tables)
         return _FusedEncoding.apply(u.contiguous().float(), res, *tables)
     g = u.view(1, -1, 1, 1, 3)
     feats = [F.grid_sample(t.permute(3, 0, 1, 2)[None], g, mode="bilinear", padding_mode="zeros",
-                           align_corners=True).view(t.shape[-1], -1) for t in tables]  # L x [C,N]
-    return torch.cat(feats, 0).T  # [N, L*C]
+                           align_corners=True).view(t.shape[-1], -1).T if t.dim() == 4 else _hashed_level(u, t, r)
+             for t, r in zip(tables, res)]  # L x [N,C]
+    return torch.cat(feats, 1)  # [N, L*C]
+
+
+def _hashed_level(u: torch.Tensor, table: torch.Tensor, R: int) -> torch.Tensor:
+    """Trilinear look-up [N,C] of a hashed level (table [T,C], resolution R) at u [N,3] in [-1,1]."""
+    p = (u + 1.0) * (0.5 * (R - 1))  # [N,3] in cells
+    i0 = p.detach().floor()
+    f = p - i0  # [N,3]; differentiable in u
+    i0 = i0.long()
+    out = u.new_zeros(u.shape[0], table.shape[1])
+    for c in range(8):  # the cell's corners (8 vectorised gathers, not a loop over points)
+        b = torch.tensor([c & 1, (c >> 1) & 1, (c >> 2) & 1], device=u.device)
+        idx = i0 + b  # [N,3]
+        inside = ((idx >= 0) & (idx < R)).all(-1)  # [N]
+        h = idx[:, 0] ^ ((idx[:, 1] * _PRIMES[1]) & 0xFFFFFFFF) ^ ((idx[:, 2] * _PRIMES[2]) & 0xFFFFFFFF)
+        row = torch.where(inside, h % table.shape[0], torch.zeros_like(h))
+        w = torch.where(b.bool(), f, 1.0 - f).prod(-1) * inside  # [N]
+        out = out + w[:, None] * table[row]
+    return out
 

@@ -665,3 +665,38 @@ def test_an_empty_mesh_reads_back_as_an_empty_mesh(tmp_path):
     save_ply(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)), tmp_path / "mesh.ply")
     mesh = load_mesh(tmp_path / "mesh.ply")
     assert isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0
+
+
+def test_hashed_levels_read_the_rows_instant_ngp_s_hash_names():
+    """A hashed level [T,C] reads, at cell (x, y, z), row (x ^ 2654435761 y ^ 805459861 z) mod T (uint32):
+    both kernels equal grid_sample on the dense table that hash spells out (written here with Python's
+    integers), and their gradients equal each other, points outside the grid included."""
+    from manifoldneus import grid_encoding
+
+    if grid_encoding.fused_kernel() is None:
+        pytest.fail(f"the fused grid kernel did not build: {grid_encoding.fused_unavailable_reason()}")
+    gen = torch.Generator().manual_seed(1)
+    R, T, C = 11, 97, 2  # 1331 cells share 97 rows
+    hashed = torch.randn(T, C, generator=gen).requires_grad_(True)
+    dense_small = torch.randn(4, 4, 4, C, generator=gen).requires_grad_(True)
+    rows = [[[((x ^ (y * 2654435761) ^ (z * 805459861)) & 0xFFFFFFFF) % T for x in range(R)] for y in range(R)]
+            for z in range(R)]
+    spelled = hashed.detach()[torch.tensor(rows)]  # [R,R,R,C], indexed [z][y][x]
+    u = (torch.rand(3000, 3, generator=gen) * 2.4 - 1.2).requires_grad_(True)
+    g_out = torch.randn(3000, 2 * C, generator=gen)
+    want = grid_encoding.encode(u.detach(), [dense_small.detach(), spelled], "torch")
+    grads = {}
+    for kernel in ("fused", "torch"):
+        f = grid_encoding.encode(u, [dense_small, hashed], kernel, resolutions=(4, R))
+        assert torch.allclose(f.detach(), want, atol=1e-5), kernel
+        (f * g_out).sum().backward()
+        grads[kernel] = (u.grad.clone(), hashed.grad.clone(), dense_small.grad.clone())
+        u.grad = hashed.grad = dense_small.grad = None
+    for a, b in zip(grads["fused"], grads["torch"]):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-3)
+    assert grads["torch"][1].abs().sum() > 0
+    # the field: levels finer than 2^log2 cells are hashed, the coarse ones stay dense
+    field = make_field(FieldParams(grid_levels=4, grid_min_res=8, grid_max_res=64, grid_hash_log2=12))
+    assert [tuple(g.shape) for g in field.grids] == [(8, 8, 8, 4), (16, 16, 16, 4), (2 ** 12, 4), (2 ** 12, 4)]
+    x = torch.rand(500, 3) * 2 - 1
+    assert torch.allclose(field.sdf(x), field.sdf(x)) and field.sdf(x).shape == (500,)

@@ -1,13 +1,17 @@
-// Multi-level dense trilinear feature grids on the CPU: forward and backward in one pass each.
+// Multi-level trilinear feature grids on the CPU: forward and backward in one pass each.
 //
 // Same sampling as torch's grid_sample(mode="bilinear", padding_mode="zeros", align_corners=True)
 // on a channel-last table: level l is a [R_l, R_l, R_l, C] table indexed [z][y][x][c]; a point's
 // coordinate u in [-1, 1] maps to (u + 1) / 2 * (R - 1); corners outside the table read zero.
+// A level whose table has fewer rows than R^3 cells is hashed (instant-NGP's spatial hash, the
+// same function as grid_encoding.py's torch path): cell (x, y, z) reads row
+// (x ^ y * 2654435761 ^ z * 805459861) mod rows, in uint32 arithmetic.
 // Why not grid_sample: its CPU 3D kernel runs one thread per batch item (here: one), reads the C
 // channels of a corner R^3 floats apart, and its backward walks the points once per level.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 #include <cmath>
+#include <cstdint>
 #include <vector>
 
 namespace {
@@ -21,7 +25,8 @@ struct Corner {
 // The 8 corners of the cell holding u [3] (x, y, z) in a table of resolution R (with the weights'
 // derivatives when kDerivative).
 template <bool kDerivative>
-inline void corners(const float* u, int64_t R, int64_t C, Corner* out) {
+inline void corners(const float* u, int64_t R, int64_t rows, int64_t C, Corner* out) {
+  const bool hashed = rows < R * R * R;
   const float scale = 0.5f * float(R - 1);
   int64_t i0[3];
   float f[3];
@@ -39,7 +44,14 @@ inline void corners(const float* u, int64_t R, int64_t C, Corner* out) {
     const float wz = bz ? f[2] : 1.f - f[2];
     Corner& k = out[c];
     const bool inside = ix >= 0 && ix < R && iy >= 0 && iy < R && iz >= 0 && iz < R;
-    k.offset = inside ? ((iz * R + iy) * R + ix) * C : -1;
+    if (!inside) {
+      k.offset = -1;
+    } else if (hashed) {
+      const uint32_t h = uint32_t(ix) ^ (uint32_t(iy) * 2654435761u) ^ (uint32_t(iz) * 805459861u);
+      k.offset = int64_t(h % uint32_t(rows)) * C;
+    } else {
+      k.offset = ((iz * R + iy) * R + ix) * C;
+    }
     k.w = wx * wy * wz;
     if (kDerivative) {
       const float sx = bx ? scale : -scale, sy = by ? scale : -scale, sz = bz ? scale : -scale;
@@ -52,20 +64,25 @@ inline void corners(const float* u, int64_t R, int64_t C, Corner* out) {
 
 }  // namespace
 
-// u [N,3] in [-1,1]; tables: L tensors [R_l^3 * C] (contiguous float). Returns [N, L*C].
+// u [N,3] in [-1,1]; tables: L tensors [rows_l * C] (contiguous float; rows_l = R_l^3 when dense).
+// Returns [N, L*C].
 torch::Tensor encode_forward(torch::Tensor u, std::vector<torch::Tensor> tables, std::vector<int64_t> res, int64_t C) {
   TORCH_CHECK(u.is_contiguous() && u.scalar_type() == torch::kFloat && u.dim() == 2 && u.size(1) == 3, "u must be contiguous float [N,3]");
   const int64_t N = u.size(0), L = int64_t(tables.size());
   auto out = torch::empty({N, L * C}, u.options());
   std::vector<const float*> tab(L);
-  for (int64_t l = 0; l < L; ++l) tab[l] = tables[l].data_ptr<float>();
+  std::vector<int64_t> rows(L);
+  for (int64_t l = 0; l < L; ++l) {
+    tab[l] = tables[l].data_ptr<float>();
+    rows[l] = tables[l].numel() / C;
+  }
   const float* up = u.data_ptr<float>();
   float* op = out.data_ptr<float>();
   at::parallel_for(0, N, 256, [&](int64_t b, int64_t e) {
     Corner k[8];
     for (int64_t n = b; n < e; ++n) {
       for (int64_t l = 0; l < L; ++l) {
-        corners<false>(up + 3 * n, res[l], C, k);
+        corners<false>(up + 3 * n, res[l], rows[l], C, k);
         float* o = op + n * L * C + l * C;
         for (int64_t c = 0; c < C; ++c) o[c] = 0.f;
         for (int j = 0; j < 8; ++j) {
@@ -88,7 +105,9 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor grad_out, torch::Tensor
   std::vector<torch::Tensor> grads;
   std::vector<float*> gp(L);
   std::vector<const float*> tab(L);
+  std::vector<int64_t> rows(L);
   for (int64_t l = 0; l < L; ++l) {
+    rows[l] = tables[l].numel() / C;
     grads.push_back(torch::zeros_like(tables[l]));
     gp[l] = grads[l].data_ptr<float>();
     tab[l] = tables[l].data_ptr<float>();
@@ -102,8 +121,8 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor grad_out, torch::Tensor
     for (int64_t l = lb; l < le; ++l) {
       for (int64_t n = 0; n < N; ++n) {
         const float* g = go + n * L * C + l * C;
-        if (need_u) corners<true>(up + 3 * n, res[l], C, k);
-        else corners<false>(up + 3 * n, res[l], C, k);
+        if (need_u) corners<true>(up + 3 * n, res[l], rows[l], C, k);
+        else corners<false>(up + 3 * n, res[l], rows[l], C, k);
         float d0 = 0.f, d1 = 0.f, d2 = 0.f;
         for (int j = 0; j < 8; ++j) {
           if (k[j].offset < 0) continue;
