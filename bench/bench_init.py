@@ -70,7 +70,7 @@ def one(scene_name: str, setting: str, overrides: list[str], artifacts: Path) ->
     log = logging.getLogger("bench_init")
     with tempfile.TemporaryDirectory() as tmp:
         ctx = pipeline.Context(stages["anchors"], resolved, store, fps["anchors"]["upstream"], Path(tmp), scene, log)
-        inputs = posefree.load_inputs(ctx)
+        inputs = posefree.load_inputs(**{s: ctx.input(s) for s in posefree.INPUT_STAGES})
         rounds = inputs.schedule["round"]
         anchors = [int(v) for v in np.flatnonzero((rounds == 0) & inputs.train_mask)]
         t0 = time.perf_counter()

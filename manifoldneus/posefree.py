@@ -13,15 +13,46 @@ they belong to; ``pose_trace`` [T,N,4,4] and
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import logging
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
 
 from manifoldneus import correspondence, gate, io
-from manifoldneus.train import Trainer, TrainRun, Views
+from manifoldneus.config import RunParams
+from manifoldneus.correspondence import CorrespondenceParams
+from manifoldneus.field import FieldParams
+from manifoldneus.gate import GateParams
+from manifoldneus.losses import LossParams
+from manifoldneus.render import RenderParams
+from manifoldneus.train import Trainer, TrainParams, TrainRun, Views
+
+INPUT_STAGES = ("ingest", "features", "matching", "covisibility", "schedule")  # what load_inputs reads
+ROUND_SECTIONS = ("field", "render", "loss", "train", "gate", "correspondence", "run")  # what a Round reads
+
+
+@dataclasses.dataclass
+class RoundConfig:
+    """The parameter sections a round reads (each the stage's resolved section)."""
+
+    field: FieldParams
+    render: RenderParams
+    loss: LossParams
+    train: TrainParams
+    gate: GateParams
+    correspondence: CorrespondenceParams
+    run: RunParams
+    log_path: Path | None = None  # where COLMAP's own output goes (None: the console)
+
+    @classmethod
+    def from_sections(cls, section: Callable[[str], object], log_path: Path | None = None) -> "RoundConfig":
+        """From a lookup of sections by name (a stage's ``ctx.section``)."""
+        return cls(**{name: section(name) for name in ROUND_SECTIONS}, log_path=log_path)
 
 
 @dataclasses.dataclass
@@ -49,19 +80,20 @@ def with_intrinsics(inputs: SceneInputs, K: np.ndarray) -> SceneInputs:
     return dataclasses.replace(inputs, views=dataclasses.replace(inputs.views, K=np.asarray(K)))
 
 
-def load_inputs(ctx) -> SceneInputs:
+def load_inputs(ingest: Path, features: Path, matching: Path, covisibility: Path, schedule: Path) -> SceneInputs:
+    """The inputs of the rounds from the version folders of the stages :data:`INPUT_STAGES` names."""
     from manifoldneus.artifacts import load_features, load_matches, load_schedule
     from manifoldneus.pose_init import pairs_from_matches
 
-    arrays = io.load_arrays(ctx.input("ingest") / "views.zarr")
-    meta = io.load_json(ctx.input("ingest") / "views.json")
+    arrays = io.load_arrays(ingest / "views.zarr")
+    meta = io.load_json(ingest / "views.json")
     n = len(meta["names"])
     views = Views(arrays["images"], arrays["K"], np.tile(np.eye(4), (n, 1, 1)), arrays.get("masks"),
                   arrays.get("mono_depth"), arrays.get("mono_normal"), meta["names"])
-    feats, _ = load_features(ctx.input("features") / "features.zarr")
-    matches, _ = load_matches(ctx.input("matching") / "matches.zarr")
-    W = io.load_arrays(ctx.input("covisibility") / "covisibility.zarr", ["W"])["W"].astype(np.float64)
-    schedule = load_schedule(ctx.input("schedule"))
+    feats, _ = load_features(features / "features.zarr")
+    matches, _ = load_matches(matching / "matches.zarr")
+    W = io.load_arrays(covisibility / "covisibility.zarr", ["W"])["W"].astype(np.float64)
+    schedule = load_schedule(schedule)
     held_out = np.isin(np.arange(n), schedule["meta"]["held_out_views"])  # the schedule decided them
     train_mask = (schedule["round"] >= 0) & ~held_out
     return SceneInputs(views, meta["names"], [f["keypoints"] for f in feats], pairs_from_matches(matches), W,
@@ -78,9 +110,8 @@ def subset_views(views: Views, ids, w2c_all: np.ndarray) -> Views:
                  pick(views.mono_normal), [views.names[i] for i in ids])
 
 
-def train_run(ctx, iters: int, pose_lr: float, pose_warmup_frac: float, learn_poses: bool) -> TrainRun:
+def train_run(run: RunParams, iters: int, pose_lr: float, pose_warmup_frac: float, learn_poses: bool) -> TrainRun:
     """One round's run: its length and pose optimiser (the stage's section), the run's device."""
-    run = ctx.section("run")
     return TrainRun(iters=iters, learn_poses=learn_poses, pose_lr=pose_lr,
                     pose_warmup=int(round(pose_warmup_frac * iters)), seed=run.seed, threads=run.threads,
                     device=run.device)
@@ -101,7 +132,7 @@ def free_space_term(lp, sfm_points: dict, radius: float, device):
 class Round:
     """One optimisation round over ``ids`` (global view ids) starting from poses ``w2c_all``."""
 
-    def __init__(self, ctx, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
+    def __init__(self, cfg: RoundConfig, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
                  pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
                  pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None,
                  sfm_points: dict | None = None, image_size: int | None = None, gated_ids=None):
@@ -112,17 +143,17 @@ class Round:
         self.iters = iters
         self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
         self.full_K = self.K_all[self.ids]
-        run = train_run(ctx, iters, pose_lr, pose_warmup_frac, learn_poses)
-        gate_p = ctx.section("gate")
+        run = train_run(cfg.run, iters, pose_lr, pose_warmup_frac, learn_poses)
+        gate_p = cfg.gate
         s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids])
-        self.corr_p = ctx.section("correspondence")
+        self.corr_p = cfg.correspondence
         self.corr = None
-        device = ctx.section("run").device
+        device = cfg.run.device
         if learn_poses and self.corr_p.kind == "reprojection":
             from manifoldneus.pose_init import init_from_matches
 
             # the tracks (not the poses) of COLMAP's reconstruction of this round's views' matches
-            with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
+            with io.native_output_to(cfg.log_path) if cfg.log_path else contextlib.nullcontext():  # COLMAP's own log goes to log.txt
                 ba = init_from_matches(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
                                        sizes=inputs.sizes)
             self.corr = correspondence.ReprojectionLoss(
@@ -132,7 +163,7 @@ class Round:
             ms = correspondence.MatchSet(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs,
                                          self.corr_p.holdout_frac, self.corr_p.seed)
             self.corr = correspondence.CorrespondenceLoss(ms.to(device), self.corr_p, correspondence_weight)
-        train_p = ctx.section("train")
+        train_p = cfg.train
         if image_size is not None:
             train_p = dataclasses.replace(train_p, image_size=int(image_size))
         # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
@@ -140,15 +171,14 @@ class Round:
         self.pose_start = int(round(pose_start_frac * iters))
         gated = None if gated_ids is None else torch.as_tensor(np.isin(self.ids, np.asarray(gated_ids, int)))
         self.trainer = Trainer(
-            subset_views(inputs.views, self.ids, w2c_all), ctx.section("field"), ctx.section("render"),
-            ctx.section("loss"), train_p, run=run,
+            subset_views(inputs.views, self.ids, w2c_all), cfg.field, cfg.render, cfg.loss, train_p, run=run,
             band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,
                                                                 gate_p, gated),
             pose_start=self.pose_start, pose_loss=self.corr,
             # the views whose poses learn (default all of the round's): local indices into ids
             pose_views=None if pose_ids is None else np.flatnonzero(np.isin(self.ids, np.asarray(pose_ids, int))),
         )
-        lp = ctx.section("loss")
+        lp = cfg.loss
         if lp.w_free_space > 0 and inputs.views.masks is None and sfm_points is not None:
             self.trainer.free_space = free_space_term(lp, sfm_points, self.trainer.rp.radius, self.trainer.device)
         if carry is not None:  # the field learned so far; poses restart at zero correction
@@ -175,7 +205,7 @@ class Round:
         self.grad_trace.append(trainer.cams.grad_norms())
         self.pose_trace.append(trainer.poses_numpy())
 
-    def _guard(self, ctx, desc: str) -> dict:
+    def _guard(self, log: logging.Logger, desc: str) -> dict:
         """The guard of :mod:`manifoldneus.correspondence`: the round's starting poses come back
         when its pose update made the held-out correspondences' error worse."""
         t = self.trainer
@@ -184,22 +214,25 @@ class Round:
         out = correspondence.guard_check(self.corr, t.w2c_init, t.poses().detach(), self.corr_p)
         if out["fired"]:
             t.cams.reset()
-            ctx.log.warning("%s: the pose update raised the held-out %s error from %.4g to %.4g (tolerance %g %%): "
+            log.warning("%s: the pose update raised the held-out %s error from %.4g to %.4g (tolerance %g %%): "
                             "poses rolled back to the round's start", desc, self.corr_p.kind, out["start"], out["end"],
                             100 * self.corr_p.guard_tolerance)
         elif out["checked"]:
-            ctx.log.info("%s: held-out %s error %.4g -> %.4g (median %.3f -> %.3f px)", desc, self.corr_p.kind,
+            log.info("%s: held-out %s error %.4g -> %.4g (median %.3f -> %.3f px)", desc, self.corr_p.kind,
                          out["start"], out["end"], out["start_median_px"], out["end_median_px"])
         return out
 
-    def run(self, ctx, desc: str, checkpoint: Path | None = None) -> dict:
+    def run(self, desc: str, checkpoint: Path | None = None, *, log: logging.Logger,
+            progress: Callable[..., object]) -> dict:
+        """Train the round (resuming from ``checkpoint`` when it holds this round's state); ``progress``
+        makes a tqdm-like bar (total=, desc=, initial=)."""
         t = self.trainer
         t.checkpoint_path = checkpoint
         resumed_from = None
         if checkpoint is not None and t.resume(checkpoint):
             resumed_from = t.step
-            ctx.log.info("%s: resumed from %s at step %d", desc, checkpoint.name, t.step)
-        bar = ctx.progress(total=self.iters, desc=desc, initial=t.step)
+            log.info("%s: resumed from %s at step %d", desc, checkpoint.name, t.step)
+        bar = progress(total=self.iters, desc=desc, initial=t.step)
 
         def callback(trainer, info):
             bar.update(info["step"] - bar.n)
@@ -210,7 +243,7 @@ class Round:
         bar.close()
         summary["seconds"] = time.time() - started
         summary["resumed_from_step"] = resumed_from  # None: ran from step 0 (the history covers every step either way)
-        summary["guard"] = self.guard = self._guard(ctx, desc)
+        summary["guard"] = self.guard = self._guard(log, desc)
         return summary
 
     def poses_all(self) -> np.ndarray:

@@ -318,7 +318,8 @@ def perturbed(w2c: np.ndarray, p: Params, seed: int) -> np.ndarray:
 
 def run(ctx) -> None:
     p: Params = ctx.params
-    inputs = posefree.load_inputs(ctx)
+    cfg = posefree.RoundConfig.from_sections(ctx.section, ctx.log_path)
+    inputs = posefree.load_inputs(**{s: ctx.input(s) for s in posefree.INPUT_STAGES})
     rounds = inputs.schedule["round"]
     anchors = [int(v) for v in np.flatnonzero((rounds == 0) & inputs.train_mask)]
     if len(anchors) < 2:
@@ -341,11 +342,11 @@ def run(ctx) -> None:
 
     s_tilde = inputs.schedule["s_tilde_rounds"][0]
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-    rnd = posefree.Round(ctx, inputs, anchors, w2c0, s_tilde, iters=p.iters, pose_lr=p.pose_lr,
+    rnd = posefree.Round(cfg, inputs, anchors, w2c0, s_tilde, iters=p.iters, pose_lr=p.pose_lr,
                          pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
                          pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
                          sfm_points=sfm_points)
-    summary = rnd.run(ctx, "anchors", ctx.checkpoint_dir / "round_0.pt")
+    summary = rnd.run("anchors", ctx.checkpoint_dir / "round_0.pt", log=ctx.log, progress=ctx.progress)
     posefree.save_round(ctx.out / "round_0", rnd, placed, {
         "round": 0, "views": anchors, "names": [inputs.names[a] for a in anchors], "init": init_info,
         "train": summary, "history": rnd.trainer.history})

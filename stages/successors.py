@@ -81,7 +81,8 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
 
 def run(ctx) -> None:
     p: Params = ctx.params
-    inputs = posefree.load_inputs(ctx)
+    cfg = posefree.RoundConfig.from_sections(ctx.section, ctx.log_path)
+    inputs = posefree.load_inputs(**{s: ctx.input(s) for s in posefree.INPUT_STAGES})
     rounds = inputs.schedule["round"]
     n_rounds = int(rounds.max()) if (rounds >= 0).any() else 0
     if p.max_rounds and n_rounds > p.max_rounds:
@@ -113,7 +114,7 @@ def run(ctx) -> None:
                          r, len(moved), len(before), p.sfm_restart)
         # initial poses of the new views (depth PnP against the previous round's model, or the matches)
         if p.placement == "depth":
-            probe = posefree.Round(ctx, inputs, before, w2c, np.ones(len(w2c)), iters=1, pose_lr=0.0,
+            probe = posefree.Round(cfg, inputs, before, w2c, np.ones(len(w2c)), iters=1, pose_lr=0.0,
                                    pose_warmup_frac=0.0, learn_poses=False, carry=carry)
             depth_at = posefree.depth_at_fn(probe)
         placed_poses = {int(v): w2c[v] for v in before}
@@ -149,13 +150,13 @@ def run(ctx) -> None:
         ids = np.flatnonzero(placed)
         last = r == n_rounds
         iters = p.final_iters if last and p.final_iters else p.iters
-        rnd = posefree.Round(ctx, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters,
+        rnd = posefree.Round(cfg, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters,
                              pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
                              carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
                              pose_ids=None if p.refine_placed else new, sfm_points=sfm_points,
                              image_size=p.final_image_size if last and p.final_image_size >= 0 else None,
                              gated_ids=None if p.regate == "all" else new)
-        summary = rnd.run(ctx, f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt")
+        summary = rnd.run(f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt", log=ctx.log, progress=ctx.progress)
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,
             "history": rnd.trainer.history})
