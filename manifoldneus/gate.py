@@ -50,10 +50,11 @@ def base_progress(step: int, total: int, p: GateParams, n_bands: int) -> float:
 
 
 def band_weights(view: torch.Tensor, step: int, total: int, s_tilde: torch.Tensor, n_bands: int,
-                 p: GateParams, gated: torch.Tensor | None = None) -> torch.Tensor | None:
+                 p: GateParams, start: torch.Tensor | None = None) -> torch.Tensor | None:
     """Per-ray band weights [R, L] for rays of views ``view`` [R] (long) at iteration ``step`` of
-    ``total``; ``s_tilde`` [N] is each view's optimisability in [0, 1]; ``gated`` [N] (bool, or None =
-    all) says which views go through the gate: the others' rays see every band. None = all bands on."""
+    ``total``; ``s_tilde`` [N] is each view's optimisability in [0, 1]; ``start`` [N] (or None = 0) is
+    the progress, in bands, below which a view's a(t) does not go: L = every band on from the start
+    (a view an earlier round fitted keeps the field's bands). None = all bands on."""
     if not p.enabled or n_bands == 0:
         return None
     L = n_bands
@@ -65,7 +66,6 @@ def band_weights(view: torch.Tensor, step: int, total: int, s_tilde: torch.Tenso
     eta_t = step / max(total, 1) if p.use_eta_t else 1.0
     s = s_tilde.to(view.device, torch.float32)[view] if p.use_s else torch.ones(view.shape[0], device=view.device)
     shift = p.lam * s[:, None] * eta_f[None, :] * eta_t * L  # [R,L]
-    x = (a + shift - k[None, :]).clamp(0.0, 1.0)
-    if gated is not None:
-        x = torch.where(gated.to(view.device)[view][:, None], x, torch.ones_like(x))
+    base = a if start is None else start.to(view.device, torch.float32)[view][:, None].clamp_min(a)  # [R,1]
+    x = (base + shift - k[None, :]).clamp(0.0, 1.0)
     return (1.0 - torch.cos(math.pi * x)) / 2.0

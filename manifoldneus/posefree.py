@@ -135,10 +135,12 @@ class Round:
     def __init__(self, cfg: RoundConfig, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
                  pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
                  pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None,
-                 sfm_points: dict | None = None, image_size: int | None = None, gated_ids=None):
+                 sfm_points: dict | None = None, image_size: int | None = None, kept_ids=None,
+                 kept_frac: float = 0.0):
         """image_size: longest side the round trains at (None: ``train.image_size``; 0: the images' own).
-        gated_ids: global ids of the views whose rays go through the coarse-to-fine gate (None: all of
-        the round's); the others see every band from the round's start."""
+        kept_ids, kept_frac: the views (global ids) whose rays keep the coarsest ``kept_frac`` of the
+        field's bands from the round's start (the gate's progress starts there for them, at 0 for the
+        others); 1 = they see every band."""
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
@@ -169,11 +171,13 @@ class Round:
         # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
         # correction driven by an unfitted field only moves good initial poses away.
         self.pose_start = int(round(pose_start_frac * iters))
-        gated = None if gated_ids is None else torch.as_tensor(np.isin(self.ids, np.asarray(gated_ids, int)))
+        kept = None if kept_ids is None or kept_frac <= 0 else torch.as_tensor(
+            np.isin(self.ids, np.asarray(kept_ids, int)) * float(kept_frac), dtype=torch.float32)  # [n]
         self.trainer = Trainer(
             subset_views(inputs.views, self.ids, w2c_all), cfg.field, cfg.render, cfg.loss, train_p, run=run,
-            band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,
-                                                                gate_p, gated),
+            band_weight_fn=lambda view, step: gate.band_weights(
+                view, step, iters, s_sub, self.trainer.field.n_bands, gate_p,
+                None if kept is None else kept * self.trainer.field.n_bands),
             pose_start=self.pose_start, pose_loss=self.corr,
             # the views whose poses learn (default all of the round's): local indices into ids
             pose_views=None if pose_ids is None else np.flatnonzero(np.isin(self.ids, np.asarray(pose_ids, int))),

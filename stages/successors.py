@@ -46,10 +46,11 @@ class Params:
                                   "other rounds, 0 = the images' own size (coarse-to-fine over image resolution: "
                                   "the earlier rounds fit the field at train.image_size, the last one sharpens it "
                                   "and the poses on the full images; a step costs the same at any size)", lo=-1)
-    regate: str = param("all", "Which views' rays go through the coarse-to-fine gate again in each round: 'all' "
-                        "(every view of the round restarts at the coarse bands, the gate read per round) or 'new' "
-                        "(only the round's new views; the views earlier rounds optimised see every band of the "
-                        "field they fitted from the round's start)", choices=["all", "new"])
+    regate_kept: float = param(0.0, "Fraction of the field's bands (the coarsest) that the views earlier rounds "
+                               "optimised keep from a round's start; their finer bands, and every band of the "
+                               "round's new views, go through the coarse-to-fine gate again: 0 = every view "
+                               "restarts coarse-to-fine (the gate read per round), 1 = only the new views do",
+                               lo=0.0, hi=1.0)
     pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
     max_rounds: int = param(0, "Stop after this many successor rounds (0 = all); later rounds' views stay unplaced "
                             "(the sweeps of bench/sweep.py only read round 1)", lo=0)
@@ -155,7 +156,7 @@ def run(ctx) -> None:
                              carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
                              pose_ids=None if p.refine_placed else new, sfm_points=sfm_points,
                              image_size=p.final_image_size if last and p.final_image_size >= 0 else None,
-                             gated_ids=None if p.regate == "all" else new)
+                             kept_ids=[int(v) for v in ids if v not in set(new)], kept_frac=p.regate_kept)
         summary = rnd.run(f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt", log=ctx.log, progress=ctx.progress)
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,

@@ -65,16 +65,20 @@ def test_vectorised_over_rays():
     assert torch.allclose(out[view == i], out[view == i][0].expand_as(out[view == i]))
 
 
-def test_views_outside_the_gate_see_every_band():
-    """successors.regate=new: only the round's new views go coarse-to-fine; the rays of views an earlier
-    round optimised read every band of the field they fitted, from the round's first step on."""
+def test_views_an_earlier_round_fitted_keep_their_coarse_bands():
+    """successors.regate_kept: the views an earlier round optimised start the gate's progress at
+    kept x L bands (1: every band from the round's first step); the round's new views start at 0."""
     view = torch.arange(10).repeat(50)
     s = torch.rand(10)
-    gated = torch.arange(10) >= 7  # views 7, 8, 9 are the round's new ones
+    kept = (torch.arange(10) < 7).float()  # views 0..6 were fitted before; 7, 8, 9 are new
+    new = ~kept.bool()[view]
     for step in (0, 100, 333):
         plain = band_weights(view, step, T, s, L, GateParams())
-        out = band_weights(view, step, T, s, L, GateParams(), gated)
-        new = gated[view]
-        assert torch.equal(out[new], plain[new])
-        assert torch.equal(out[~new], torch.ones_like(out[~new]))
-    assert (band_weights(view, 0, T, s, L, GateParams(), gated)[gated[view]] < 1).any()  # the new ones start coarse
+        every = band_weights(view, step, T, s, L, GateParams(), kept * L)
+        half = band_weights(view, step, T, s, L, GateParams(), kept * L / 2)
+        assert torch.equal(every[new], plain[new]) and torch.equal(half[new], plain[new])
+        assert torch.equal(every[~new], torch.ones_like(every[~new]))
+        # the coarse half is on from the start, the finer bands no lower than the plain gate's
+        assert torch.equal(half[~new][:, : L // 2], torch.ones_like(half[~new][:, : L // 2]))
+        assert (half[~new] >= plain[~new]).all()
+    assert (band_weights(view, 0, T, s, L, GateParams(), kept * L / 2)[~new][:, -1] < 1).all()
