@@ -1,6 +1,7 @@
-"""Readers of the stages' artifacts, in one place (as hloc's ``utils/io.py``): a stage writes its
-files, every other module reads them through these functions, and the package never imports
-from ``stages/``. Each takes the version folder of the stage (``ctx.input(stage)``) or the file.
+"""Readers of the stages' artifacts, and the writers of those several modules read, in one place (as
+hloc's ``utils/io.py``): a stage writes its files (through the ``save_*`` here where there is one),
+every other module reads them through these functions, and the package never imports from
+``stages/``. Each takes the version folder of the stage (``ctx.input(stage)``) or the file.
 """
 from __future__ import annotations
 
@@ -9,11 +10,15 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus import io
-from manifoldneus.train import Views
+from manifoldneus.views import Views
+
+INITIAL_POSES = "initial_poses.zarr"
+COVISIBILITY = "covisibility.zarr"
+POSES = "poses.zarr"  # the same name in reference, ground_truth, mesh and every pose-free round
 
 
 def load_views(ingest_dir: Path, w2c: np.ndarray | None = None, K: np.ndarray | None = None) -> Views:
-    """``ingest``'s ``views.zarr`` as :class:`~manifoldneus.train.Views` (poses: ``w2c`` [N,4,4], or
+    """``ingest``'s ``views.zarr`` as :class:`~manifoldneus.views.Views` (poses: ``w2c`` [N,4,4], or
     identity placeholders: ingest never holds poses; intrinsics: ``K`` [N,3,3], e.g. a round's, which
     the anchors may have refined, else the ingest's)."""
     arrays = io.load_arrays(Path(ingest_dir) / "views.zarr")
@@ -55,9 +60,65 @@ def load_schedule(schedule_dir: Path) -> dict:
     return out
 
 
+def load_round_arrays(round_dir: Path, names: list[str] | None = None) -> dict:
+    """A pose-free round's ``poses.zarr`` (``anchors/round_0``, ``successors/round_<r>``,
+    ``successors/final``; written by :func:`manifoldneus.posefree.save_round`): all its arrays, or
+    ``names``."""
+    return io.load_arrays(Path(round_dir) / POSES, names)
+
+
 def load_round(round_dir: Path) -> dict:
-    """A pose-free round (``anchors/round_0``, ``successors/round_<r>``, ``successors/final``):
-    the arrays of ``poses.zarr`` plus ``round.json`` under 'info'."""
-    out = io.load_arrays(Path(round_dir) / "poses.zarr")
+    """A pose-free round: :func:`load_round_arrays` plus ``round.json`` under 'info'."""
+    out = load_round_arrays(round_dir)
     out["info"] = io.load_json(Path(round_dir) / "round.json")
     return out
+
+
+def load_covisibility(cov_dir: Path, names: list[str] | None = None) -> dict:
+    """``covisibility``'s ``covisibility.zarr``: ``W`` float64 [N,N], ``c`` float64 [N], ``component``
+    int32 [N], ``in_largest`` bool [N] (all, or ``names``)."""
+    return io.load_arrays(Path(cov_dir) / COVISIBILITY, names)
+
+
+def save_covisibility(cov_dir: Path, arrays: dict, attrs: dict) -> None:
+    io.save_arrays(Path(cov_dir) / COVISIBILITY, arrays, attrs=attrs, chunk_first=False)
+
+
+def load_initial_poses(anchors_dir: Path, names: list[str] | None = None) -> dict:
+    """``anchors``' ``initial_poses.zarr``, the anchors' poses before their round: ``w2c`` [N,4,4],
+    ``placed`` [N], ``K`` [N,3,3] and the SfM points :data:`manifoldneus.posefree.SFM_POINTS` (all,
+    or ``names``)."""
+    return io.load_arrays(Path(anchors_dir) / INITIAL_POSES, names)
+
+
+def save_initial_poses(anchors_dir: Path, arrays: dict) -> None:
+    io.save_arrays(Path(anchors_dir) / INITIAL_POSES, arrays, chunk_first=False)
+
+
+def load_ground_truth_poses(gt_dir: Path, names: list[str] | None = None) -> dict:
+    """``ground_truth``'s ``poses.zarr`` (only where ``gt.json`` says ``has_poses``): ``w2c`` [N,4,4] and
+    ``normalization`` [4,4] of the object-normalised frame; where known ``K``, ``masks``,
+    ``surface_points`` (all, or ``names``). The method is blind to it: only ``GROUND_TRUTH_READERS``
+    (stages/__init__.py), the report and its viewer read it."""
+    return io.load_arrays(Path(gt_dir) / POSES, names)
+
+
+def save_ground_truth_poses(gt_dir: Path, arrays: dict) -> None:
+    io.save_arrays(Path(gt_dir) / POSES, arrays, chunk_first=False)
+
+
+def load_reference_poses(reference_dir: Path, names: list[str] | None = None) -> dict:
+    """``reference``'s (pycolmap's) ``poses.zarr``: ``w2c`` [N,4,4] in COLMAP's world frame,
+    ``registered`` [N], ``K`` [N,3,3], ``points3d`` [P,3], ``points3d_rgb`` [P,3] (all, or ``names``)."""
+    return io.load_arrays(Path(reference_dir) / POSES, names)
+
+
+def save_reference_poses(reference_dir: Path, arrays: dict, attrs: dict) -> None:
+    io.save_arrays(Path(reference_dir) / POSES, arrays, attrs=attrs, chunk_first=False)
+
+
+def load_pose_estimate(est_dir: Path) -> dict:
+    """``w2c`` of any artifact holding ``poses.zarr`` (the reference, the mesh, a round), and
+    ``registered`` where it has one (only the reference leaves views unregistered)."""
+    path = Path(est_dir) / POSES
+    return io.load_arrays(path, [n for n in ("w2c", "registered") if n in io.array_names(path)])

@@ -82,7 +82,7 @@ def with_intrinsics(inputs: SceneInputs, K: np.ndarray) -> SceneInputs:
 
 def load_inputs(ingest: Path, features: Path, matching: Path, covisibility: Path, schedule: Path) -> SceneInputs:
     """The inputs of the rounds from the version folders of the stages :data:`INPUT_STAGES` names."""
-    from manifoldneus.artifacts import load_features, load_matches, load_schedule
+    from manifoldneus.artifacts import load_covisibility, load_features, load_matches, load_schedule
     from manifoldneus.pose_init import pairs_from_matches
 
     arrays = io.load_arrays(ingest / "views.zarr")
@@ -92,7 +92,7 @@ def load_inputs(ingest: Path, features: Path, matching: Path, covisibility: Path
                   arrays.get("mono_depth"), arrays.get("mono_normal"), meta["names"])
     feats, _ = load_features(features / "features.zarr")
     matches, _ = load_matches(matching / "matches.zarr")
-    W = io.load_arrays(covisibility / "covisibility.zarr", ["W"])["W"].astype(np.float64)
+    W = load_covisibility(covisibility, ["W"])["W"].astype(np.float64)
     schedule = load_schedule(schedule)
     held_out = np.isin(np.arange(n), schedule["meta"]["held_out_views"])  # the schedule decided them
     train_mask = (schedule["round"] >= 0) & ~held_out
@@ -291,6 +291,8 @@ def depth_at_fn(rnd: Round):
 
 
 def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> None:
+    from manifoldneus.artifacts import POSES
+
     out_dir.mkdir(parents=True, exist_ok=True)
     n_views = len(placed)
     w2c = rnd.poses_all()
@@ -300,8 +302,8 @@ def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> Non
     for k, (P, g) in enumerate(zip(rnd.pose_trace, rnd.grad_trace)):
         trace[k, rnd.ids] = P
         grads[k, rnd.ids] = g
-    io.save_arrays(out_dir / "poses.zarr", {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed, "K": rnd.K_all,
-                                            "optimised": np.isin(np.arange(n_views), rnd.ids),
-                                            "pose_trace": trace, "pose_grad_norm": grads}, chunk_first=False)
+    io.save_arrays(out_dir / POSES, {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed, "K": rnd.K_all,
+                                     "optimised": np.isin(np.arange(n_views), rnd.ids),
+                                     "pose_trace": trace, "pose_grad_norm": grads}, chunk_first=False)
     rnd.trainer.save(out_dir / "model.pt")
     io.save_json(out_dir / "round.json", info)

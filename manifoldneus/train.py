@@ -33,7 +33,7 @@ import math
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass, field as dc_field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,7 @@ from manifoldneus.pose_correction import PoseCorrections
 from manifoldneus.losses import LossParams, compute_losses
 from manifoldneus.rays import camera_rays, project
 from manifoldneus.render import Background, RenderParams, SDFCache, render_image, render_rays, resolve_background
+from manifoldneus.views import Views
 
 log = logging.getLogger("manifoldneus.train")
 
@@ -97,59 +98,6 @@ class TrainRun:
     seed: int = 0
     threads: int = 0  # torch CPU threads (0 = leave torch's default)
     device: str = "cpu"
-
-
-@dataclass
-class Views:
-    """Plain-array input of the trainer (see module doc)."""
-
-    images: np.ndarray
-    K: np.ndarray
-    w2c: np.ndarray
-    masks: np.ndarray | None = None
-    mono_depth: np.ndarray | None = None
-    mono_normal: np.ndarray | None = None
-    names: list = dc_field(default_factory=list)
-
-    @property
-    def n(self) -> int:
-        return int(self.images.shape[0])
-
-    @property
-    def hw(self) -> tuple[int, int]:
-        return int(self.images.shape[1]), int(self.images.shape[2])
-
-    def resized(self, size: int) -> "Views":
-        """Downscale (area filter) so the longest side is ``size``; K follows (pixel-centre
-        convention: plain scaling). Normals are renormalised, masks re-thresholded at 0.5."""
-        import cv2
-
-        H, W = self.hw
-        if size <= 0 or max(H, W) <= size:
-            return self
-        s = size / max(H, W)
-        h, w = max(int(round(H * s)), 1), max(int(round(W * s)), 1)
-        sx, sy = w / W, h / H
-
-        def rs(a, interp=cv2.INTER_AREA):
-            return np.stack([cv2.resize(x, (w, h), interpolation=interp) for x in a])
-
-        imgs = self.images
-        imgs = rs(imgs.astype(np.float32) / (255.0 if imgs.dtype == np.uint8 else 1.0))
-        K = np.array(self.K, dtype=np.float64)
-        K[:, 0, :] *= sx
-        K[:, 1, :] *= sy
-        masks = None if self.masks is None else rs(self.masks.astype(np.float32)) > 0.5
-        depth = None if self.mono_depth is None else rs(self.mono_depth.astype(np.float32))
-        normal = None
-        if self.mono_normal is not None:
-            normal = rs(self.mono_normal.astype(np.float32))
-            normal /= np.linalg.norm(normal, axis=-1, keepdims=True).clip(1e-8)
-        return Views(imgs, K, np.array(self.w2c), masks, depth, normal, list(self.names))
-
-    def float_images(self) -> np.ndarray:
-        im = self.images
-        return im.astype(np.float32) / 255.0 if im.dtype == np.uint8 else im.astype(np.float32)
 
 
 def keep_freed_memory(threshold: int = 1 << 30) -> bool:

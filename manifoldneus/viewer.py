@@ -89,7 +89,7 @@ def _frusta_json(points: np.ndarray, present: np.ndarray) -> list:
 def _rounds(anchors_dir: Path, successors_dir: Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """(label, w2c [N,4,4], posed bool [N]) for the anchors' initial poses, the anchor round and
     each successor round, in order (as the ``evaluate`` stage lists them)."""
-    init = io.load_arrays(anchors_dir / "initial_poses.zarr")
+    init = artifacts.load_initial_poses(anchors_dir)
     out = [("initial", init["w2c"], init["placed"].astype(bool))]
     dirs = [anchors_dir / "round_0"] + sorted(successors_dir.glob("round_*"), key=lambda p: int(p.name.split("_")[1]))
     for d in dirs:
@@ -112,7 +112,7 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
 
     views_meta = io.load_json(versions["ingest"] / "views.json")
     names, width, height = views_meta["names"], views_meta["width"], views_meta["height"]
-    K = io.load_arrays(versions["successors"] / "final" / "poses.zarr", ["K"])["K"]  # the intrinsics the poses belong to
+    K = artifacts.load_round_arrays(versions["successors"] / "final", ["K"])["K"]  # the intrinsics the poses belong to
     n = len(names)
     schedule = io.load_json(versions["schedule"] / "schedule.json")
     held_out = np.zeros(n, bool)
@@ -128,7 +128,7 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
     gt = None
     gt_meta = io.load_json(versions["ground_truth"] / "gt.json")
     if gt_meta.get("has_poses") and final_posed.sum() >= 3:
-        gt_w2c = io.load_arrays(versions["ground_truth"] / "poses.zarr", ["w2c"])["w2c"]
+        gt_w2c = artifacts.load_ground_truth_poses(versions["ground_truth"], ["w2c"])["w2c"]
         # the Sim3 final -> GT that `evaluate` and `export` fit, undone: GT in the method's frame, then this one
         gt_from_model = cameras.align_centres(model_rounds[-1][1], gt_w2c, final_posed)
         world_from_gt = world_from_model["world_from_model"] @ np.linalg.inv(cameras.sim3_matrix(*gt_from_model))
@@ -170,7 +170,7 @@ def reference_data(reference_dir: Path, final_w2c: np.ndarray, final_posed: np.n
                    depth: float) -> dict | None:
     """The pycolmap reference's cameras and sparse points, mapped onto the final cameras by the
     Sim3 of the centres of the views both placed (None when fewer than 3)."""
-    ref = io.load_arrays(reference_dir / "poses.zarr", ["w2c", "registered", "points3d", "points3d_rgb"])
+    ref = artifacts.load_reference_poses(reference_dir, ["w2c", "registered", "points3d", "points3d_rgb"])
     both = ref["registered"].astype(bool) & final_posed
     if both.sum() < 3:
         return None

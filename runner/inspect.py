@@ -70,10 +70,10 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
 
 def posed_lines(successors_dir: Path, schedule_dir: Path) -> list[str]:
     """How many of the views meant to get a pose got one; a warning naming those that did not."""
-    from manifoldneus import io
+    from manifoldneus import artifacts, io
 
     schedule = io.load_json(schedule_dir / "schedule.json")
-    placed = io.load_arrays(successors_dir / "final" / "poses.zarr", ["placed"])["placed"].astype(bool)
+    placed = artifacts.load_round_arrays(successors_dir / "final", ["placed"])["placed"].astype(bool)
     held = set(schedule["held_out_views"])
     meant = [v for v in schedule["views"] if v["view"] not in held]  # those outside the largest component too
     missing = [v["name"] for v in meant if not placed[v["view"]]]

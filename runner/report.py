@@ -81,7 +81,7 @@ def neural_rounds(ptr: Pointers) -> list[RoundPoses]:
     anchors, successors = ptr.get("anchors"), ptr.get("successors")
     if anchors is None:
         return []
-    init = io.load_arrays(anchors / "initial_poses.zarr")
+    init = artifacts.load_initial_poses(anchors)
     dirs = [anchors / "round_0"]
     if successors is not None:
         dirs += sorted(successors.glob("round_*"), key=lambda p: int(p.name.split("_")[1]))
@@ -96,7 +96,7 @@ def neural_rounds(ptr: Pointers) -> list[RoundPoses]:
 def reference_rounds(reference_dir: Path | None) -> list[RoundPoses]:
     if reference_dir is None:
         return []
-    ref = io.load_arrays(reference_dir / "poses.zarr", ["w2c", "registered"])
+    ref = artifacts.load_reference_poses(reference_dir, ["w2c", "registered"])
     return [RoundPoses("final", ref["w2c"], ref["registered"].astype(bool))]
 
 
@@ -113,7 +113,7 @@ def load_ground_truth(gt_dir: Path | None) -> GroundTruth | None:
     meta = io.load_json(gt_dir / "gt.json")
     if not meta.get("has_poses"):
         return None
-    w2c = io.load_arrays(gt_dir / "poses.zarr", ["w2c"])["w2c"]
+    w2c = artifacts.load_ground_truth_poses(gt_dir, ["w2c"])["w2c"]
     return GroundTruth(w2c, meta["units"], float(meta["units_per_scene_unit"]))
 
 
@@ -541,7 +541,7 @@ def section_bias(page: Page, systems: dict[str, Pointers], rounds: dict[str, lis
         if gt is None or cov is None or not trained:
             page.missing(f"{name} easy-view analysis", "needs ground truth, covisibility and trained rounds")
             continue
-        c = io.load_arrays(cov / "covisibility.zarr", ["c"])["c"].astype(float)
+        c = artifacts.load_covisibility(cov, ["c"])["c"].astype(float)
         bias = {r.label: b for r in trained if (b := easy_view_bias(r.trained, gt, c)) is not None}
         if not bias:
             page.missing(f"{name} easy-view analysis", "no round with 3 or more views and logged iterations")

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import io, mavos, pose_init, posefree, sfm
+from manifoldneus import artifacts, io, mavos, pose_init, posefree, sfm
 from manifoldneus.config import ParamError, param
 
 
@@ -105,7 +105,7 @@ class Params:
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "reference")
 SECTIONS = ("anchors", "train", "field", "render", "loss", "gate", "correspondence", "run")
-OUTPUTS = ("round_0", "initial_poses.zarr")
+OUTPUTS = ("round_0", artifacts.INITIAL_POSES)
 
 
 def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -114,7 +114,7 @@ def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndar
 
     from manifoldneus import cameras
 
-    ref = io.load_arrays(reference_dir / "poses.zarr")
+    ref = artifacts.load_reference_poses(reference_dir)
     rec = pycolmap.Reconstruction(str(reference_dir / "sparse"))
     pts = np.array([p.xyz for p in rec.points3D.values()])
     if len(pts) < 3:
@@ -140,7 +140,8 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
         ref, registered = reference_poses(ctx.input("reference"), n, p.gauge_radius)
         if registered.any():  # pycolmap's intrinsics (refined when it refined them)
             ids = np.flatnonzero(registered)
-            K = sfm.shared_K(K, inputs.sizes, ids, io.load_arrays(ctx.input("reference") / "poses.zarr", ["K"])["K"][ids])
+            ref_K = artifacts.load_reference_poses(ctx.input("reference"), ["K"])["K"]
+            K = sfm.shared_K(K, inputs.sizes, ids, ref_K[ids])
         missing = [inputs.names[a] for a in anchors if not registered[a]]
         if missing:
             ctx.log.warning("pycolmap did not register anchors %s; they start at a registered neighbour's pose", missing)
@@ -335,9 +336,8 @@ def run(ctx) -> None:
                      p.perturb_rot_deg, p.perturb_centre_frac)
     placed = np.zeros(n, bool)
     placed[anchors] = True
-    io.save_arrays(ctx.out / "initial_poses.zarr", {"w2c": w2c0, "placed": placed, "K": K,
-                                                    **{k: v.astype(np.float32) for k, v in sfm_points.items()}},
-                   chunk_first=False)
+    artifacts.save_initial_poses(ctx.out, {"w2c": w2c0, "placed": placed, "K": K,
+                                           **{k: v.astype(np.float32) for k, v in sfm_points.items()}})
     ctx.log.info("anchors %s initialised by %s", [inputs.names[a] for a in anchors], init_info["method"])
 
     s_tilde = inputs.schedule["s_tilde_rounds"][0]

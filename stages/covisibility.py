@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import mavos
+from manifoldneus import artifacts, mavos
 from manifoldneus.config import param
-from manifoldneus.io import load_arrays, load_attrs, save_arrays, save_figure, save_json
+from manifoldneus.io import load_arrays, load_attrs, save_figure, save_json
 
 
 @dataclass
@@ -36,7 +36,7 @@ class Params:
 
 UPSTREAM = ("matching",)
 SECTIONS = ("covisibility",)
-OUTPUTS = ("covisibility.zarr", "components.json", "covisibility.png", "graph.png")
+OUTPUTS = (artifacts.COVISIBILITY, "components.json", "covisibility.png", "graph.png")
 
 
 # --------------------------------------------------------------------------- plain functions
@@ -137,11 +137,10 @@ def run(ctx) -> None:
     outside = [names[v] for v in range(n) if labels[v] != 0]
     isolated = [names[v] for v in range(n) if c[v] == 0]
 
-    save_arrays(
-        Path(ctx.out) / "covisibility.zarr",
+    artifacts.save_covisibility(
+        ctx.out,
         {"W": W, "c": c, "component": labels.astype(np.int32), "in_largest": labels == 0},
         attrs={"names": names, "min_inliers": p.min_inliers},
-        chunk_first=False,
     )
     save_json(
         Path(ctx.out) / "components.json",

@@ -41,7 +41,7 @@ def input_signature(scene, p) -> str:
 
 def _rounds(ctx) -> list[tuple[str, dict]]:
     """(label, poses) per row: the anchors' initial poses, then each round."""
-    out = [("initial", io.load_arrays(ctx.input("anchors") / "initial_poses.zarr"))]
+    out = [("initial", artifacts.load_initial_poses(ctx.input("anchors")))]
     out.append(("anchors", artifacts.load_round(ctx.input("anchors") / "round_0")))
     succ = ctx.input("successors")
     for d in sorted(succ.glob("round_*"), key=lambda p: int(p.name.split("_")[1])):
@@ -117,7 +117,7 @@ def run(ctx) -> None:
         io.save_json(ctx.out / "evaluation.json", {"has_ground_truth": False})
         io.save_png(ctx.out / "pose_error_rounds.png", np.zeros((8, 8, 3)))
         return
-    gt = io.load_arrays(ctx.input("ground_truth") / "poses.zarr")
+    gt = artifacts.load_ground_truth_poses(ctx.input("ground_truth"))
     units = gt_meta["units_per_scene_unit"]
     # --- poses per round
     rows = []

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import io
+from manifoldneus import artifacts, io
 from manifoldneus.config import param
 from manifoldneus.pose_metrics import evaluate_poses, json_summary, plot_cameras
 
@@ -55,15 +55,14 @@ def evaluate_pose_artifact(est_dir, gt_dir, out_dir, label: str, names=None, wit
     est_dir, gt_dir, out_dir = Path(est_dir), Path(gt_dir), Path(out_dir)
     json_path = out_dir / f"{label}_pose_metrics.json"
     gt_meta = io.load_json(gt_dir / "gt.json") if (gt_dir / "gt.json").is_file() else {}
-    if not gt_meta.get("has_poses", (gt_dir / "poses.zarr").exists()):
+    if not gt_meta.get("has_poses", (gt_dir / artifacts.POSES).exists()):
         out = {"label": label, "evaluated": False, "reason": "the scene has no ground-truth poses"}
         io.save_json(json_path, out)
         if log:
             log.warning("%s: no ground-truth poses, pose errors not evaluated", label)
         return out
-    gt = io.load_arrays(gt_dir / "poses.zarr", ["w2c", "normalization"])
-    est_names = io.array_names(est_dir / "poses.zarr")
-    est = io.load_arrays(est_dir / "poses.zarr", [n for n in ("w2c", "registered") if n in est_names])
+    gt = artifacts.load_ground_truth_poses(gt_dir, ["w2c", "normalization"])
+    est = artifacts.load_pose_estimate(est_dir)
     w2c_est, w2c_gt = est["w2c"], gt["w2c"]
     if len(w2c_est) != len(w2c_gt):
         raise ValueError(f"{label}: {len(w2c_est)} estimated poses for {len(w2c_gt)} ground-truth views")

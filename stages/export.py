@@ -51,7 +51,7 @@ def world_from_model(gt_dir, w2c: np.ndarray, valid: np.ndarray, frame: str) -> 
         return np.eye(4), "model", "model units", "the input has no cameras of its own, so no world frame"
     if valid.sum() < 3:
         return np.eye(4), "model", "model units", f"only {int(valid.sum())} final views: too few for a Sim3"
-    gt = io.load_arrays(gt_dir / "poses.zarr", ["w2c", "normalization"])
+    gt = artifacts.load_ground_truth_poses(gt_dir, ["w2c", "normalization"])
     s, R, t = cameras.align_centres(w2c, gt["w2c"], valid)
     M = gt["normalization"] @ cameras.sim3_matrix(s, R, t)
     how = (f"Sim3 (Umeyama) of the {int(valid.sum())} final camera centres onto the input's cameras "
@@ -97,7 +97,7 @@ def run(ctx) -> None:
 
     h, w = views.images.shape[1:3]
     # the SfM points that initialised the anchors (the method's frame), as COLMAP's points3D and splatfacto's start
-    points = io.load_arrays(ctx.input("anchors") / "initial_poses.zarr", ["object_points"])["object_points"]
+    points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
     points = cameras.transform_points(M, np.asarray(points, np.float64).reshape(-1, 3))
     colours = export.point_colours(points, views.images, views.K, w2c_world, np.flatnonzero(placed))
     ply = None

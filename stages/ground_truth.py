@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from manifoldneus import io, scenes
+from manifoldneus import artifacts, io, scenes
 from stages.ingest import Params, input_signature  # same section: what to read and how  # noqa: F401
 
 UPSTREAM = ("ingest",)
@@ -39,7 +39,7 @@ def run(ctx) -> None:
         arrays["masks"] = own["masks"]
     if "surface_points" in gt:
         arrays["surface_points"] = gt["surface_points"]
-    io.save_arrays(ctx.out / "poses.zarr", arrays, chunk_first=False)
+    artifacts.save_ground_truth_poses(ctx.out, arrays)
     scale = float(abs(np.linalg.det(gt["normalization"][:3, :3])) ** (1 / 3))
     io.save_json(ctx.out / "gt.json", {"has_poses": True, "has_surface": "surface_points" in gt,
                                        "units": gt["units"], "units_per_scene_unit": scale})

@@ -17,7 +17,7 @@ from manifoldneus import artifacts, evaluation, export, io, object_region, posef
 Params = evaluation.MeshParams
 UPSTREAM = ("ingest", "anchors", "successors")
 SECTIONS = ("meshing", "run.device")  # run.seed and run.threads do not change a mesh
-OUTPUTS = ("mesh.ply", "poses.zarr", "colmap")
+OUTPUTS = ("mesh.ply", artifacts.POSES, "colmap")
 
 
 def run(ctx) -> None:
@@ -31,11 +31,11 @@ def run(ctx) -> None:
     masks = None if views.masks is None else views.masks[ids]
     found = io.load_json(ctx.input("anchors") / "round_0" / "round.json")["init"].get("object_region")
     region = None if found is None else object_region.ObjectRegion.from_json(found)
-    object_points = io.load_arrays(ctx.input("anchors") / "initial_poses.zarr", ["object_points"])["object_points"]
+    object_points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
     mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3], region,
                                 object_points)
     evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params, w2c=w2c[ids])
-    io.save_arrays(ctx.out / "poses.zarr", {"w2c": w2c, "placed": placed}, chunk_first=False)
+    io.save_arrays(ctx.out / artifacts.POSES, {"w2c": w2c, "placed": placed}, chunk_first=False)
     h, w = views.images.shape[1:3]
     export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c, w, h, valid=placed)
     ctx.metrics.update(faces=int(len(mesh.faces)), vertices=int(len(mesh.vertices)), views_exported=int(placed.sum()))

@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import sfm
+from manifoldneus import artifacts, sfm
 from manifoldneus.config import ParamError, param
-from manifoldneus.io import load_arrays, load_json, native_output_to, save_arrays
+from manifoldneus.io import load_arrays, load_json, native_output_to
 
 
 @dataclass
@@ -67,7 +67,7 @@ class Params:
 
 UPSTREAM = ("ingest",)
 SECTIONS = ("reference",)
-OUTPUTS = ("poses.zarr", "sparse")
+OUTPUTS = (artifacts.POSES, "sparse")
 
 
 # --------------------------------------------------------------------------- plain functions
@@ -217,8 +217,8 @@ def run(ctx) -> None:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
-    save_arrays(
-        Path(ctx.out) / "poses.zarr",
+    artifacts.save_reference_poses(
+        ctx.out,
         {k: res[k] for k in ("w2c", "registered", "K", "points3d", "points3d_rgb")},
         attrs={
             "names": names,
@@ -226,7 +226,6 @@ def run(ctx) -> None:
             "frame": "COLMAP world frame (arbitrary similarity); OpenCV camera frame, world-to-camera",
             "intrinsics": intrinsics,
         },
-        chunk_first=False,
     )
     reg = res["registered"]
     missing = [names[v] for v in np.flatnonzero(~reg)]

@@ -47,7 +47,7 @@ def run(ctx) -> None:
         io.save_json(ctx.out / "reference.json", {"trained": False, "why": why})
         return
     # ground truth through and through: the layout's poses, calibration and masks (when the method runs without)
-    gt = io.load_arrays(ctx.input("ground_truth") / "poses.zarr")
+    gt = artifacts.load_ground_truth_poses(ctx.input("ground_truth"))
     w2c = gt["w2c"]
     views = artifacts.load_views(ctx.input("ingest"), w2c, gt.get("K"))
     if views.masks is None and "masks" in gt:

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import io, mavos
+from manifoldneus import artifacts, io, mavos
 from manifoldneus.config import holdout_mask, param
 from manifoldneus.scenes import SceneError
 
@@ -136,7 +136,7 @@ def run(ctx) -> None:
     p = ctx.params
     meta = io.load_json(ctx.input("ingest") / "views.json")
     names = meta["names"]
-    cov = io.load_arrays(ctx.input("covisibility") / "covisibility.zarr", ["W", "c"])
+    cov = artifacts.load_covisibility(ctx.input("covisibility"), ["W", "c"])
     W = np.asarray(cov["W"], np.float64)
     c = np.asarray(cov["c"], np.float64).reshape(-1)
     spec = io.load_arrays(ctx.input("spectral") / "spectral.zarr", ["phi", "in_component"])

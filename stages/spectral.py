@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import io, mavos
+from manifoldneus import artifacts, io, mavos
 from manifoldneus.config import param
 
 
@@ -37,7 +37,7 @@ OUTPUTS = ("spectral.zarr", "spectral.json", "spectral.png")
 
 def load_covisibility(cov_dir):
     """(W float64 [N,N], c float64 [N], components from components.json or None)."""
-    arrays = io.load_arrays(cov_dir / "covisibility.zarr", ["W", "c"])
+    arrays = artifacts.load_covisibility(cov_dir, ["W", "c"])
     comps = None
     if (cov_dir / "components.json").is_file():
         comps = io.load_json(cov_dir / "components.json")

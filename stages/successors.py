@@ -98,7 +98,7 @@ def run(ctx) -> None:
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     ctx.metrics["rounds"] = []
     left_out: list[int] = []  # views an earlier round could not place: retried once more views are placed
-    sfm_points = io.load_arrays(ctx.input("anchors") / "initial_poses.zarr", list(posefree.SFM_POINTS))
+    sfm_points = artifacts.load_initial_poses(ctx.input("anchors"), list(posefree.SFM_POINTS))
     for r in range(1, n_rounds + 1):
         new = [*left_out, *(int(v) for v in np.flatnonzero((rounds == r) & inputs.train_mask))]
         left_out = []

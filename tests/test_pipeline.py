@@ -124,6 +124,9 @@ def test_code_hash_covers_package_modules():
     # the C++ a reached module compiles at run time is part of the stage's code
     anchors = {p.relative_to(pipeline.ROOT).as_posix() for p in runner.fingerprint._code_files(stages["anchors"].module)}
     assert "manifoldneus/csrc/grid_encoding.cpp" in anchors and "manifoldneus/csrc/grid_encoding.cpp" not in files
+    # the front end writes and reads through manifoldneus.artifacts, which must not reach the trainer
+    covisibility = {p.name for p in runner.fingerprint._code_files(stages["covisibility"].module)}
+    assert "artifacts.py" in covisibility and "train.py" not in covisibility
 
 
 def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_path, monkeypatch):
