@@ -184,7 +184,8 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str) + "\n")
     except BaseException as e:
         with _signals_held():
-            log.exception("stage %s failed; nothing was published", stage.name)
+            if handlers:  # before the stage's log exists there is nothing to record; the CLI says why
+                log.exception("stage %s failed; nothing was published", stage.name)
             _detach(handlers)
             failed = store.stage_dir(stage.name) / f".failed-{fp}"
             shutil.rmtree(failed, ignore_errors=True)
@@ -204,13 +205,23 @@ def execute(stage: Stage, resolved: dict, store: Store, fps: dict, scene) -> Pat
 @contextlib.contextmanager
 def _signals_held():
     """Ctrl-C and SIGTERM wait until the block is done and arrive right after it, so that the few
-    file operations that create or move a version's folder are never cut in half."""
-    held = {signal.SIGINT, signal.SIGTERM}
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    file operations that create or move a version's folder are never cut in half. Python-level
+    handlers, not a signal mask: a process-directed signal blocked in the main thread is delivered
+    to any other thread (OpenMP's, a timer's), whose flag Python then serves in the main thread
+    inside the block anyway. Only the main thread can set handlers; elsewhere the block runs as is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, frame: caught.append(signum))
+                for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
+        for s in dict.fromkeys(caught):  # each once, in the order they came
+            signal.raise_signal(s)
 
 
 def cli_hint(command: str, scene_name: str, *words: str, artifacts: Path = DEFAULT_ARTIFACTS, data_root=None,

@@ -416,8 +416,13 @@ def test_ctrl_c_while_a_version_folder_is_being_set_up_leaves_no_temporary_folde
         return real(stage, path)
 
     monkeypatch.setattr(runner.execute, "_stage_logger", interrupted_while_setting_up)
-    with pytest.raises(KeyboardInterrupt):
-        pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    # Python's own Ctrl-C handler, as a command line has it (an earlier test in this worker may have set another)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     names = [p.name for p in pipeline.Store(artifacts, "synthetic").stage_dir("ingest").iterdir()]
     assert not [n for n in names if n.startswith(".tmp-")] and any(n.startswith(".failed-") for n in names), names
 
