@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from manifoldneus import correspondence, gate, io
+from manifoldneus import artifacts, correspondence, gate, io
 from manifoldneus.config import RunParams
 from manifoldneus.correspondence import CorrespondenceParams
 from manifoldneus.field import FieldParams
@@ -82,18 +82,15 @@ def with_intrinsics(inputs: SceneInputs, K: np.ndarray) -> SceneInputs:
 
 def load_inputs(ingest: Path, features: Path, matching: Path, covisibility: Path, schedule: Path) -> SceneInputs:
     """The inputs of the rounds from the version folders of the stages :data:`INPUT_STAGES` names."""
-    from manifoldneus.artifacts import load_covisibility, load_features, load_matches, load_schedule
     from manifoldneus.pose_init import pairs_from_matches
 
-    arrays = io.load_arrays(ingest / "views.zarr")
+    views = artifacts.load_views(ingest)  # identity placeholders for the poses
     meta = io.load_json(ingest / "views.json")
-    n = len(meta["names"])
-    views = Views(arrays["images"], arrays["K"], np.tile(np.eye(4), (n, 1, 1)), arrays.get("masks"),
-                  arrays.get("mono_depth"), arrays.get("mono_normal"), meta["names"])
-    feats, _ = load_features(features / "features.zarr")
-    matches, _ = load_matches(matching / "matches.zarr")
-    W = load_covisibility(covisibility, ["W"])["W"].astype(np.float64)
-    schedule = load_schedule(schedule)
+    n = views.n
+    feats, _ = artifacts.load_features(features / "features.zarr")
+    matches, _ = artifacts.load_matches(matching / "matches.zarr")
+    W = artifacts.load_covisibility(covisibility, ["W"])["W"].astype(np.float64)
+    schedule = artifacts.load_schedule(schedule)
     held_out = np.isin(np.arange(n), schedule["meta"]["held_out_views"])  # the schedule decided them
     train_mask = (schedule["round"] >= 0) & ~held_out
     return SceneInputs(views, meta["names"], [f["keypoints"] for f in feats], pairs_from_matches(matches), W,
@@ -171,17 +168,18 @@ class Round:
         # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
         # correction driven by an unfitted field only moves good initial poses away.
         self.pose_start = int(round(pose_start_frac * iters))
-        kept = None if kept_ids is None or kept_frac <= 0 else torch.as_tensor(
-            np.isin(self.ids, np.asarray(kept_ids, int)) * float(kept_frac), dtype=torch.float32)  # [n]
         self.trainer = Trainer(
             subset_views(inputs.views, self.ids, w2c_all), cfg.field, cfg.render, cfg.loss, train_p, run=run,
-            band_weight_fn=lambda view, step: gate.band_weights(
-                view, step, iters, s_sub, self.trainer.field.n_bands, gate_p,
-                None if kept is None else kept * self.trainer.field.n_bands),
+            band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,
+                                                                gate_p, gate_start),
             pose_start=self.pose_start, pose_loss=self.corr,
             # the views whose poses learn (default all of the round's): local indices into ids
             pose_views=None if pose_ids is None else np.flatnonzero(np.isin(self.ids, np.asarray(pose_ids, int))),
         )
+        # the gate's starting progress per view, in bands: the kept views' share of the field's bands
+        gate_start = None if kept_ids is None or kept_frac <= 0 else torch.as_tensor(
+            np.isin(self.ids, np.asarray(kept_ids, int)) * (kept_frac * self.trainer.field.n_bands),
+            dtype=torch.float32, device=self.trainer.device)  # [n]
         lp = cfg.loss
         if lp.w_free_space > 0 and inputs.views.masks is None and sfm_points is not None:
             self.trainer.free_space = free_space_term(lp, sfm_points, self.trainer.rp.radius, self.trainer.device)
@@ -291,8 +289,6 @@ def depth_at_fn(rnd: Round):
 
 
 def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> None:
-    from manifoldneus.artifacts import POSES
-
     out_dir.mkdir(parents=True, exist_ok=True)
     n_views = len(placed)
     w2c = rnd.poses_all()
@@ -302,7 +298,7 @@ def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> Non
     for k, (P, g) in enumerate(zip(rnd.pose_trace, rnd.grad_trace)):
         trace[k, rnd.ids] = P
         grads[k, rnd.ids] = g
-    io.save_arrays(out_dir / POSES, {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed, "K": rnd.K_all,
+    io.save_arrays(out_dir / artifacts.POSES, {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed, "K": rnd.K_all,
                                      "optimised": np.isin(np.arange(n_views), rnd.ids),
                                      "pose_trace": trace, "pose_grad_norm": grads}, chunk_first=False)
     rnd.trainer.save(out_dir / "model.pt")

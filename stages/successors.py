@@ -156,7 +156,7 @@ def run(ctx) -> None:
                              carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
                              pose_ids=None if p.refine_placed else new, sfm_points=sfm_points,
                              image_size=p.final_image_size if last and p.final_image_size >= 0 else None,
-                             kept_ids=[int(v) for v in ids if v not in set(new)], kept_frac=p.regate_kept)
+                             kept_ids=np.setdiff1d(ids, new), kept_frac=p.regate_kept)
         summary = rnd.run(f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt", log=ctx.log, progress=ctx.progress)
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,

@@ -199,3 +199,28 @@ def test_the_last_round_can_restart_every_view_from_the_matches_sfm(tiny_run, tm
         moved = np.abs(end["w2c_init"][carried] - before["w2c"][carried]).max()
         assert (moved > 1e-6) == restarted, (where, moved)
 
+
+
+def test_a_round_gates_only_the_views_it_does_not_keep(tiny_run):
+    """successors.regate_kept = 1: the rays of the views an earlier round fitted see every band of the
+    field from the round's first step; the round's new views start coarse, as with the default 0."""
+    from manifoldneus import posefree
+
+    artifacts, _ = tiny_run
+    store = pipeline.Store(artifacts, "synthetic")
+    resolved = pipeline.resolve_params(pipeline.load_stages(), overrides=TINY)
+    cfg = posefree.RoundConfig.from_sections(lambda name: resolved[name])
+    inputs = posefree.load_inputs(**{s: store.version_dir(s, store.current(s)) for s in posefree.INPUT_STAGES})
+    ids = np.flatnonzero(inputs.train_mask)
+    kept = ids[: len(ids) // 2]  # the rest are the round's new views
+    w2c = np.tile(np.eye(4), (len(inputs.names), 1, 1))
+    s_tilde = np.ones(len(inputs.names))
+    weights = {}
+    for frac in (0.0, 1.0):
+        rnd = posefree.Round(cfg, inputs, ids, w2c, s_tilde, iters=100, pose_lr=0.0, pose_warmup_frac=0.0,
+                             learn_poses=False, kept_ids=kept, kept_frac=frac)
+        weights[frac] = rnd.trainer.band_weight_fn(torch.arange(len(ids)), 0)  # [views of the round, L]
+    is_kept = torch.as_tensor(np.isin(ids, kept))
+    assert (weights[0.0][:, -1] < 1).all()  # the default: every view starts coarse
+    assert torch.equal(weights[1.0][is_kept], torch.ones_like(weights[1.0][is_kept]))
+    assert torch.equal(weights[1.0][~is_kept], weights[0.0][~is_kept]) and (weights[1.0][~is_kept][:, -1] < 1).all()

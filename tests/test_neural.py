@@ -699,4 +699,5 @@ def test_hashed_levels_read_the_rows_instant_ngp_s_hash_names():
     field = make_field(FieldParams(grid_levels=4, grid_min_res=8, grid_max_res=64, grid_hash_log2=12))
     assert [tuple(g.shape) for g in field.grids] == [(8, 8, 8, 4), (16, 16, 16, 4), (2 ** 12, 4), (2 ** 12, 4)]
     x = torch.rand(500, 3) * 2 - 1
-    assert torch.allclose(field.sdf(x), field.sdf(x)) and field.sdf(x).shape == (500,)
+    want = grid_encoding.encode(x, list(field.grids), "torch", resolutions=(8, 16, 32, 64))  # aabb is [-1, 1]^3
+    assert torch.allclose(field.grid_features(x), want, atol=1e-6) and field.sdf(x).shape == (500,)
