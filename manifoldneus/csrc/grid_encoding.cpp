@@ -24,9 +24,8 @@ struct Corner {
 
 // The 8 corners of the cell holding u [3] (x, y, z) in a table of resolution R (with the weights'
 // derivatives when kDerivative).
-template <bool kDerivative>
+template <bool kDerivative, bool kHashed>
 inline void corners(const float* u, int64_t R, int64_t rows, int64_t C, Corner* out) {
-  const bool hashed = rows < R * R * R;
   const float scale = 0.5f * float(R - 1);
   int64_t i0[3];
   float f[3];
@@ -46,7 +45,7 @@ inline void corners(const float* u, int64_t R, int64_t rows, int64_t C, Corner* 
     const bool inside = ix >= 0 && ix < R && iy >= 0 && iy < R && iz >= 0 && iz < R;
     if (!inside) {
       k.offset = -1;
-    } else if (hashed) {
+    } else if (kHashed) {
       const uint32_t h = uint32_t(ix) ^ (uint32_t(iy) * 2654435761u) ^ (uint32_t(iz) * 805459861u);
       k.offset = int64_t(h % uint32_t(rows)) * C;
     } else {
@@ -82,7 +81,8 @@ torch::Tensor encode_forward(torch::Tensor u, std::vector<torch::Tensor> tables,
     Corner k[8];
     for (int64_t n = b; n < e; ++n) {
       for (int64_t l = 0; l < L; ++l) {
-        corners<false>(up + 3 * n, res[l], rows[l], C, k);
+        if (rows[l] < res[l] * res[l] * res[l]) corners<false, true>(up + 3 * n, res[l], rows[l], C, k);
+        else corners<false, false>(up + 3 * n, res[l], rows[l], C, k);
         float* o = op + n * L * C + l * C;
         for (int64_t c = 0; c < C; ++c) o[c] = 0.f;
         for (int j = 0; j < 8; ++j) {
@@ -121,8 +121,14 @@ std::vector<torch::Tensor> encode_backward(torch::Tensor grad_out, torch::Tensor
     for (int64_t l = lb; l < le; ++l) {
       for (int64_t n = 0; n < N; ++n) {
         const float* g = go + n * L * C + l * C;
-        if (need_u) corners<true>(up + 3 * n, res[l], rows[l], C, k);
-        else corners<false>(up + 3 * n, res[l], rows[l], C, k);
+        const bool hashed = rows[l] < res[l] * res[l] * res[l];
+        if (need_u) {
+          if (hashed) corners<true, true>(up + 3 * n, res[l], rows[l], C, k);
+          else corners<true, false>(up + 3 * n, res[l], rows[l], C, k);
+        } else {
+          if (hashed) corners<false, true>(up + 3 * n, res[l], rows[l], C, k);
+          else corners<false, false>(up + 3 * n, res[l], rows[l], C, k);
+        }
         float d0 = 0.f, d1 = 0.f, d2 = 0.f;
         for (int j = 0; j < 8; ++j) {
           if (k[j].offset < 0) continue;
