@@ -17,15 +17,18 @@ COVISIBILITY = "covisibility.zarr"
 POSES = "poses.zarr"  # the same name in reference, ground_truth, mesh and every pose-free round
 
 
-def load_views(ingest_dir: Path, w2c: np.ndarray | None = None, K: np.ndarray | None = None) -> Views:
+def load_views(ingest_dir: Path, w2c: np.ndarray | None = None, K: np.ndarray | None = None,
+               distortion: np.ndarray | None = None) -> Views:
     """``ingest``'s ``views.zarr`` as :class:`~manifoldneus.views.Views` (poses: ``w2c`` [N,4,4], or
     identity placeholders: ingest never holds poses; intrinsics: ``K`` [N,3,3], e.g. a round's, which
-    the anchors may have refined, else the ingest's)."""
+    the anchors may have refined, else the ingest's; ``distortion`` [N,4]: the lens distortion the
+    anchors' self-calibration found (a round's), removed from the images and masks)."""
     arrays = io.load_arrays(Path(ingest_dir) / "views.zarr")
     names = io.load_json(Path(ingest_dir) / "views.json")["names"]
     w2c = np.tile(np.eye(4), (len(names), 1, 1)) if w2c is None else w2c
     return Views(arrays["images"], arrays["K"] if K is None else K, w2c, arrays.get("masks"), arrays.get("mono_depth"),
-                 arrays.get("mono_normal"), names)
+                 arrays.get("mono_normal"), names).undistorted(distortion)
+
 
 
 def load_features(path: Path) -> tuple[list[dict], dict]:

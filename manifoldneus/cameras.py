@@ -18,6 +18,10 @@ Conventions (used everywhere else, restated nowhere else):
 * glTF files are **+Y up** (its specification; Blender's importer turns that into its +Z up): a
   mesh written as glTF is first turned by :func:`gltf_from_world`, which takes the scene's
   vertical (:func:`vertical_from_cameras`) to +Y.
+* Lens distortion is OpenCV's model, ``[k1, k2, p1, p2]`` (radial and tangential terms on normalised
+  camera coordinates; COLMAP's SIMPLE_RADIAL is ``[k1, 0, 0, 0]``). Everything after the front-end
+  works with pinhole cameras: a lens's distortion is removed from keypoints
+  (:func:`undistort_points`) and images (:func:`undistort_image`), keeping K.
 * Learnable pose corrections are se(3) vectors ``xi = (rho, omega)`` (translation part
   first, then the rotation vector), applied on the left of the world-to-camera pose:
   ``w2c' = exp(xi) @ w2c`` (a perturbation in the camera frame, as in BARF).
@@ -246,6 +250,38 @@ def pixels_to_normalised(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
     h = np.c_[np.asarray(uv, np.float64).reshape(-1, 2), np.ones(len(uv))]
     h = np.linalg.solve(K, h.T).T if K.ndim == 2 else np.linalg.solve(K, h[..., None])[..., 0]
     return h[:, :2] / h[:, 2:]
+
+
+def has_distortion(distortion) -> bool:
+    """Whether a distortion vector (or any of an array of them) is non-zero."""
+    return distortion is not None and bool(np.any(np.asarray(distortion) != 0))
+
+
+def undistort_points(uv: np.ndarray, K: np.ndarray, distortion: np.ndarray) -> np.ndarray:
+    """Pixels [M,2] of a camera with K [3,3] and lens ``distortion`` -> where a pinhole camera with the
+    same K sees them (OpenCV's iterative inversion, run to 1e-10 in normalised coordinates)."""
+    import cv2
+
+    uv = np.asarray(uv, np.float64).reshape(-1, 1, 2)
+    if len(uv) == 0:
+        return uv.reshape(0, 2)
+    K = np.asarray(K, np.float64)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
+    return cv2.undistortPoints(uv, K, np.asarray(distortion, np.float64), R=None, P=K, criteria=criteria).reshape(-1, 2)
+
+
+def undistort_image(image: np.ndarray, K: np.ndarray, distortion: np.ndarray, nearest: bool = False) -> np.ndarray:
+    """An image [H,W(,C)] taken through a lens with ``distortion`` resampled as a pinhole camera with the
+    same K sees it (bilinear, or ``nearest`` for masks); pixels the lens did not cover are 0."""
+    import cv2
+
+    h, w = image.shape[:2]
+    K_cv = np.array(K, np.float64)
+    K_cv[:2, 2] -= 0.5  # OpenCV's maps put pixel centres at integers
+    maps = cv2.initUndistortRectifyMap(K_cv, np.asarray(distortion, np.float64), None, K_cv, (w, h), cv2.CV_32FC1)
+    src = image.astype(np.uint8) if image.dtype == bool else image
+    out = cv2.remap(src, *maps, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR)
+    return out.astype(image.dtype).reshape(image.shape)
 
 
 def project_points(K: np.ndarray, Xc: np.ndarray) -> np.ndarray:

@@ -101,12 +101,14 @@ def write_points_ply(path: Path, points: np.ndarray, colours: np.ndarray) -> Non
 
 def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None,
                           image_dir: str = "images", mask_dir: str | None = None,
-                          ply_file_path: str | None = None) -> dict:
+                          ply_file_path: str | None = None, test=None) -> dict:
     """nerfstudio's ``transforms.json`` (its ``nerfstudio-data`` layout) for the ``valid`` views:
     per frame ``file_path`` (relative to the file) and ``transform_matrix``, the camera-to-world pose
     with OpenGL camera axes; pinhole intrinsics ``fl_x fl_y cx cy w h`` in pixels (pixel centres at
     +0.5, as COLMAP and nerfstudio) at the top level when every view shares them, else per frame;
-    ``ply_file_path`` (relative) names the initial point cloud. Returns what it wrote."""
+    ``ply_file_path`` (relative) names the initial point cloud. ``test`` (bool [N]): views of nerfstudio's
+    test and validation split (``test_filenames``, ``val_filenames``; the other valid views are
+    ``train_filenames``); None: no split is written. Returns what it wrote."""
     valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
     c2w = cameras.opengl_c2w(w2c)  # [N,4,4]
 
@@ -126,6 +128,11 @@ def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, wid
     if ply_file_path is not None:
         out["ply_file_path"] = ply_file_path
     out["frames"] = frames
+    if test is not None:
+        test = np.asarray(test, bool)[np.flatnonzero(valid)]
+        split = {"train": [f["file_path"] for f, t in zip(frames, test) if not t],
+                 "val": [f["file_path"] for f, t in zip(frames, test) if t]}
+        out.update(train_filenames=split["train"], val_filenames=split["val"], test_filenames=split["val"])
     Path(path).write_text(json.dumps(out, indent=1) + "\n")
     return out
 

@@ -92,6 +92,8 @@ class InitResult:
     obs_view: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     obs_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     obs_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    # [V,4] OpenCV lens distortion after bundle adjustment (zeros unless a radial term was refined and freed)
+    distortion: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
 
 
 def _foreground_points(obs: dict, masks: Sequence[np.ndarray], n_points: int) -> np.ndarray:
@@ -133,6 +135,7 @@ def init_from_matches(
     object_min_seen: float = 0.5,
     object_gauge_percentile: float = 99.0,
     principal_point_p: float | None = None,
+    radial_p: float | None = None,
     log: Callable[[str], None] | None = None,
 ) -> InitResult:
     """Initial poses of the views ``view_ids`` (the anchors) from our verified matches, by
@@ -143,7 +146,7 @@ def init_from_matches(
     indexed by **global** view id; only pairs with both views in ``view_ids`` are used. sizes [N,2]
     (H, W) default to twice the principal point. refine: intrinsics bundle adjustment may change
     (``sfm.REFINABLE``); prior_focal: whether K's focal length is known (EXIF or calibration) or a
-    guess; principal_point_p: see :func:`manifoldneus.sfm.map_views`. final_ba_loss / final_ba_scale_px: the robust loss of a last bundle adjustment after
+    guess; principal_point_p, radial_p: see :func:`manifoldneus.sfm.map_views`. final_ba_loss / final_ba_scale_px: the robust loss of a last bundle adjustment after
     COLMAP's (whose global adjustments are plain least squares), "trivial" = none. masks (optional, one [H,W] bool per entry of ``view_ids``): the gauge's robust extent is
     then measured on the points seen mostly inside the foreground (when there are >= 20 of them);
     without masks, at the ``object_gauge_percentile``-th percentile of the points at least
@@ -178,7 +181,8 @@ def init_from_matches(
     rec = sfm.map_views(names, Kl, sizes_l, [keypoints[g] for g in view_ids], local_pairs, refine=refine,
                         prior_focal=prior_focal, seed=seed, min_num_matches=min_num_matches, reproj_px=reproj_px,
                         min_tri_angle_deg=min_angle_deg, final_ba_loss=final_ba_loss,
-                        final_ba_scale_px=final_ba_scale_px, principal_point_p=principal_point_p, log=say)
+                        final_ba_scale_px=final_ba_scale_px, principal_point_p=principal_point_p,
+                        radial_p=radial_p, log=say)
     placed = rec["registered"]
     pts = rec["points"]
 
@@ -232,6 +236,7 @@ def init_from_matches(
         "mean_reproj_px": rec["mean_reproj_px"],
         "refine_intrinsics": list(refine),
         "principal_point_test": rec["principal_point_test"],
+        "radial_test": rec["radial_test"],
         "K": refined_K[np.flatnonzero(placed)[0]].tolist() if placed.any() else Kl[0].tolist(),
         "gauge_scale": float(s),
         "gauge_centre": centre.tolist(),
@@ -244,6 +249,7 @@ def init_from_matches(
         view_ids=view_ids, w2c=w2c, placed=placed.copy(), method=method, points=s * (pts - centre),
         point_in_mask=in_mask, gauge=G, K=refined_K, unplaced=unplaced, why_unplaced=why, diagnostics=diag,
         obs_view=np.asarray(view_ids, np.int64)[rec["obs_view"]], obs_point=rec["obs_point"], obs_uv=rec["obs_uv"],
+        distortion=sfm.opencv_distortion(rec["extra"]),
     )
 
 

@@ -67,6 +67,7 @@ class SceneInputs:
     schedule: dict  # arrays of the schedule stage + 'meta'
     train_mask: np.ndarray  # bool [N]: scheduled and not held out
     intrinsics_source: str = "calibrated"  # views.json's: calibrated | given | exif | default
+    distortion: np.ndarray | None = None  # [N,4] the lens distortion removed from views and keypoints (None: none)
 
     @property
     def sizes(self) -> np.ndarray:
@@ -74,10 +75,24 @@ class SceneInputs:
         return np.tile(self.views.images.shape[1:3], (len(self.names), 1))
 
 
-def with_intrinsics(inputs: SceneInputs, K: np.ndarray) -> SceneInputs:
+def with_intrinsics(inputs: SceneInputs, K: np.ndarray, distortion: np.ndarray | None = None) -> SceneInputs:
     """The inputs with the intrinsics [N,3,3] the poses belong to (the anchors' initialisation may
-    refine the ingest's; every later round reads them from the previous round's ``poses.zarr``)."""
-    return dataclasses.replace(inputs, views=dataclasses.replace(inputs.views, K=np.asarray(K)))
+    refine the ingest's; every later round reads them from the previous round's ``poses.zarr``) and,
+    where the self-calibration found one, the lens ``distortion`` [N,4] removed from the images, masks
+    and keypoints (once: inputs already undistorted must be given the same distortion or none)."""
+    from manifoldneus.cameras import has_distortion, undistort_points
+
+    K = np.asarray(K, np.float64)
+    views = dataclasses.replace(inputs.views, K=K)
+    if not has_distortion(distortion) or (inputs.distortion is not None
+                                          and np.array_equal(inputs.distortion, distortion)):
+        return dataclasses.replace(inputs, views=views)
+    if has_distortion(inputs.distortion):
+        raise ValueError("with_intrinsics: the inputs are already undistorted with another distortion")
+    keypoints = [undistort_points(kp, K[v], distortion[v]) if has_distortion(distortion[v]) else kp
+                 for v, kp in enumerate(inputs.keypoints)]
+    return dataclasses.replace(inputs, views=views.undistorted(distortion), keypoints=keypoints,
+                               distortion=np.asarray(distortion, np.float64))
 
 
 def load_inputs(ingest: Path, features: Path, matching: Path, covisibility: Path, schedule: Path) -> SceneInputs:
@@ -141,6 +156,7 @@ class Round:
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
+        self.distortion_all = inputs.distortion  # [N,4] or None: the lens distortion removed from the views
         self.full_K = self.K_all[self.ids]
         run = train_run(cfg.run, iters, pose_lr, pose_warmup_frac, learn_poses)
         gate_p = cfg.gate
@@ -298,8 +314,9 @@ def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> Non
     for k, (P, g) in enumerate(zip(rnd.pose_trace, rnd.grad_trace)):
         trace[k, rnd.ids] = P
         grads[k, rnd.ids] = g
+    lens = {} if rnd.distortion_all is None else {"distortion": rnd.distortion_all}
     io.save_arrays(out_dir / artifacts.POSES, {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed, "K": rnd.K_all,
                                      "optimised": np.isin(np.arange(n_views), rnd.ids),
-                                     "pose_trace": trace, "pose_grad_norm": grads}, chunk_first=False)
+                                     "pose_trace": trace, "pose_grad_norm": grads, **lens}, chunk_first=False)
     rnd.trainer.save(out_dir / "model.pt")
     io.save_json(out_dir / "round.json", info)

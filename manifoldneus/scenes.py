@@ -240,21 +240,11 @@ def undistorted(views: dict, distortion: np.ndarray) -> dict:
     """The views with OpenCV lens ``distortion`` ([k1, k2, p1, p2(, k3)]) removed, each at its own K
     (kept: a pinhole camera with the same K sees what the lens would without distortion): images
     and priors resampled bilinearly, masks by nearest pixel. Pixels the lens did not cover stay 0."""
-    import cv2
-
     out = dict(views)
-    h, w = views["images"].shape[1:3]
     for key in ("images", "masks", "mono_depth", "mono_normal"):
-        if views.get(key) is None:
-            continue
-        stack = []
-        for K, image in zip(views["K"], views[key]):
-            maps = cv2.initUndistortRectifyMap(K, distortion, None, K, (w, h), cv2.CV_32FC1)
-            nearest = key == "masks"
-            src = image.astype(np.uint8) if nearest else image
-            warped = cv2.remap(src, *maps, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR)
-            stack.append(warped.astype(image.dtype))
-        out[key] = np.stack(stack)
+        if views.get(key) is not None:
+            out[key] = np.stack([cameras.undistort_image(image, K, distortion, nearest=key == "masks")
+                                 for K, image in zip(views["K"], views[key])])
     return out
 
 
@@ -281,7 +271,7 @@ def read_views(ref: SceneRef, p) -> dict:
         from manifoldneus import synthetic
 
         s = synthetic.make_scene(seed=ref.seed, n_views=p.synthetic_views, resolution=p.synthetic_resolution,
-                                floor=p.synthetic_floor)
+                                floor=p.synthetic_floor, k1=p.synthetic_lens_k1)
         views = {"images": s.images, "K": s.K, "masks": s.masks, "names": list(s.names), "layout": "synthetic"}
     elif ref.kind == "video":
         views = {**video_frames(ref.path, p.video_frames), "layout": "video"}

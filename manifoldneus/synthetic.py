@@ -27,7 +27,8 @@ Cameras (:func:`camera_poses`): three arcs of the upper hemisphere in front of t
 N = 49 (other N: split by arc length, evenly spaced along each arc); distance 3.0, looking at
 the origin with world +z up in the images, ordered serpentine (consecutive indices are
 neighbours, like the DTU robot path). The whole object is in every view (>= 5 px margin).
-Intrinsics: fx = fy = 2.4 W, principal point at the image centre (W/2, H/2). Conventions are
+Intrinsics: fx = fy = 2.4 W, principal point at the image centre (W/2, H/2); optionally a lens with
+radial distortion k1 (OpenCV's model, :func:`render_view`), to test its estimation. Conventions are
 those of :mod:`manifoldneus.cameras` (OpenCV, w2c, pixel centres at +0.5).
 As in DTU, the back and the bottom of the object are never observed: :func:`points_visible`
 restricts ground-truth surface samples to the observed part.
@@ -441,20 +442,28 @@ def trace(
     return t_hit
 
 
-def pixel_rays(K: np.ndarray, w2c: np.ndarray, height: int, width: int, offsets=((0.5, 0.5),)):
-    """World rays through pixel points (col + ox, row + oy) for each offset.
+def camera_dirs(K: np.ndarray, uv: np.ndarray, k1: float = 0.0) -> np.ndarray:
+    """Unit camera-frame directions [M,3] of the rays through pixels uv [M,2] of a camera with K and a
+    lens of radial distortion k1 (OpenCV's [k1, 0, 0, 0])."""
+    from manifoldneus.cameras import undistort_points
+
+    if k1:
+        uv = undistort_points(uv, K, np.array([k1, 0.0, 0.0, 0.0]))
+    dc = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(K).T
+    return dc / np.linalg.norm(dc, axis=1, keepdims=True)
+
+
+def pixel_rays(K: np.ndarray, w2c: np.ndarray, height: int, width: int, offsets=((0.5, 0.5),), k1: float = 0.0):
+    """World rays through pixel points (col + ox, row + oy) for each offset (lens distortion k1).
 
     Returns origins [S,H*W,3], unit dirs [S,H*W,3] (world) and the z component of the unit
     camera-frame direction [S,H*W] (z-depth = t * dz)."""
-    Kinv = np.linalg.inv(K)
     R, tvec = w2c[:3, :3], w2c[:3, 3]
     C = -R.T @ tvec
     rows, cols = np.mgrid[0:height, 0:width]
     dirs, dzs = [], []
     for ox, oy in offsets:
-        pix = np.stack([cols.ravel() + ox, rows.ravel() + oy, np.ones(height * width)], 1)
-        dc = pix @ Kinv.T
-        dc /= np.linalg.norm(dc, axis=1, keepdims=True)
+        dc = camera_dirs(K, np.stack([cols.ravel() + ox, rows.ravel() + oy], 1), k1)
         dirs.append(dc @ R)  # R^T dc, row-wise
         dzs.append(dc[:, 2])
     dirs = np.stack(dirs)
@@ -476,18 +485,19 @@ def _edge_pixels(mask: np.ndarray, depth: np.ndarray, rel: float = 0.01) -> np.n
 
 
 def render_view(K: np.ndarray, w2c: np.ndarray, height: int, width: int, seed: int = 0, supersample: int = 2,
-                floor: bool = False):
+                floor: bool = False, k1: float = 0.0):
     """Render one view. Returns (image uint8 [H,W,3], mask bool [H,W], depth float32 [H,W],
     normals float32 [H,W,3] in the camera frame, 0 on background). ``floor``: the object stands on a
     textured floor (:func:`floor_hit`), a support as in most captures; it is background (outside the
-    mask, no depth or normal).
+    mask, no depth or normal). ``k1``: the lens's radial distortion (OpenCV's model): each pixel
+    sees along the ray a pinhole camera with K would see at its undistorted position.
 
     Mask / depth / normals come from the ray through the pixel centre (mask = the centre ray
     hits). Colour: the centre ray's, except on silhouettes and depth discontinuities where it
     averages ``supersample**2`` traced sub-pixel rays (the texture itself is band-limited)."""
     K = np.asarray(K, np.float64)
     w2c = np.asarray(w2c, np.float64)
-    o, d, dz = pixel_rays(K, w2c, height, width)
+    o, d, dz = pixel_rays(K, w2c, height, width, k1=k1)
     o, d, dz = o[0], d[0], dz[0]
     t = trace(o, d)
     hit = np.isfinite(t)
@@ -509,12 +519,10 @@ def render_view(K: np.ndarray, w2c: np.ndarray, height: int, width: int, seed: i
         if len(edge):
             sub = [((i + 0.5) / ss, (j + 0.5) / ss) for j in range(ss) for i in range(ss)]
             rows, cols = np.divmod(edge, width)
-            Kinv = np.linalg.inv(K)
             R = w2c[:3, :3]
             C = -R.T @ w2c[:3, 3]
-            pix = np.concatenate([np.stack([cols + ox, rows + oy, np.ones(len(edge))], 1) for ox, oy in sub])
-            dw = pix @ Kinv.T @ R  # world directions, R^T K^-1 pix row-wise
-            dw /= np.linalg.norm(dw, axis=1, keepdims=True)
+            pix = np.concatenate([np.stack([cols + ox, rows + oy], 1) for ox, oy in sub])
+            dw = camera_dirs(K, pix, k1) @ R  # world directions, R^T d row-wise
             ts = trace(np.broadcast_to(C, dw.shape), dw)
             hs = np.isfinite(ts)
             c = np.tile(bg[edge], (len(sub), 1))
@@ -623,12 +631,14 @@ class SyntheticScene:
     names: list[str] = field(default_factory=list)
 
 
-def make_scene(seed: int = 0, n_views: int = 49, resolution: int = 192, floor: bool = False) -> SyntheticScene:
+def make_scene(seed: int = 0, n_views: int = 49, resolution: int = 192, floor: bool = False,
+               k1: float = 0.0) -> SyntheticScene:
     """Render the synthetic scene: ``n_views`` views of ``resolution`` x ``resolution`` pixels, the object
-    on a textured floor when ``floor``. The seed changes the texture only (the shape and the cameras are fixed)."""
+    on a textured floor when ``floor``, through a lens of radial distortion ``k1`` (K stays the
+    pinhole part). The seed changes the texture only (the shape and the cameras are fixed)."""
     H = W = int(resolution)
     w2c = camera_poses(n_views)
     K = np.broadcast_to(intrinsics(H, W), (len(w2c), 3, 3)).copy()
-    out = [render_view(K[i], w2c[i], H, W, seed, floor=floor) for i in range(len(w2c))]
+    out = [render_view(K[i], w2c[i], H, W, seed, floor=floor, k1=k1) for i in range(len(w2c))]
     images, masks, depth, normals = (np.stack(x) for x in zip(*out))
     return SyntheticScene(images, masks, K, w2c, depth, normals, [f"view_{i:03d}" for i in range(len(w2c))])

@@ -58,6 +58,24 @@ class Views:
             normal /= np.linalg.norm(normal, axis=-1, keepdims=True).clip(1e-8)
         return Views(imgs, K, np.array(self.w2c), masks, depth, normal, list(self.names))
 
+    def undistorted(self, distortion: np.ndarray | None) -> "Views":
+        """The views with each one's lens ``distortion`` [N,4] (OpenCV's model, see
+        :mod:`manifoldneus.cameras`) removed at its own K: images and priors resampled bilinearly,
+        masks by nearest pixel. Views without distortion (or ``distortion`` None) are kept as they are."""
+        from manifoldneus.cameras import has_distortion, undistort_image
+
+        if not has_distortion(distortion):
+            return self
+
+        def each(stack, nearest=False):
+            if stack is None:
+                return None
+            return np.stack([undistort_image(a, k, d, nearest) if has_distortion(d) else a
+                             for a, k, d in zip(stack, self.K, distortion)])
+
+        return Views(each(self.images), np.array(self.K), np.array(self.w2c), each(self.masks, nearest=True),
+                     each(self.mono_depth), each(self.mono_normal), list(self.names))
+
     def float_images(self) -> np.ndarray:
         im = self.images
         return im.astype(np.float32) / 255.0 if im.dtype == np.uint8 else im.astype(np.float32)

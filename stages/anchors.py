@@ -7,10 +7,13 @@ Pose initialisation (``anchors.pose_init``):
 - ``identity``: every anchor at one canonical pose looking at the origin (the paper's wording);
 - ``reference``: the pycolmap reference poses (the `neus-colmap` preset), gauged the same way.
 Intrinsics that are a guess or an EXIF prior (``anchors.intrinsics``) are first self-calibrated: one
-shared camera's focal length and principal point refined by COLMAP on every trainable view's matches
-(:func:`self_calibrate`), then held fixed from the anchors' initialisation on.
+shared camera's focal length, principal point and radial lens distortion refined by COLMAP on every
+trainable view's matches (:func:`self_calibrate`; the principal point and the distortion only where a
+likelihood-ratio test says they pay), then held fixed from the anchors' initialisation on. A distortion
+found there is removed from the images, masks and keypoints of every later stage (they work with
+pinhole cameras; :func:`manifoldneus.posefree.with_intrinsics`).
 Writes ``round_0/`` (see :mod:`manifoldneus.posefree`) and ``initial_poses.zarr``: the anchors' initial
-poses, their K, the object's SfM points (``object_points`` [P,3], gauge frame; the mesh stage's crop
+poses, their K and lens ``distortion`` [N,4] (OpenCV's, where one was found), the object's SfM points (``object_points`` [P,3], gauge frame; the mesh stage's crop
 without masks) and the lines of sight of every SfM observation (``sight_lines`` [O,2,3]; free space for
 the rounds' training without masks).
 """
@@ -44,14 +47,19 @@ class Params:
                             "and every later stage uses the refined K; auto: fixed for calibrated or given intrinsics "
                             "(views.json intrinsics_source), refine for an EXIF focal length or the 1.2 x guess",
                             choices=["auto", "fixed", "refine"])
-    refine_intrinsics: list[str] = param(["focal", "principal_point"], "What `intrinsics = refine` changes: focal, "
-                                         "principal_point (the renderer is a pinhole camera: no distortion term)")
+    refine_intrinsics: list[str] = param(["focal", "principal_point", "radial"], "What `intrinsics = refine` "
+                                         "changes: focal, principal_point, radial (a radial lens distortion k1, "
+                                         "COLMAP's SIMPLE_RADIAL, removed from the images before training)")
     principal_point_p: float = param(1e-3, "With principal_point in refine_intrinsics: it is freed only when that "
                                      "lowers the reprojection error significantly, a likelihood-ratio test at this "
                                      "p-value (sfm.free_principal_point; 1 = always freed). A narrow field of view "
                                      "trades it against the rotations: freed on 17 synthetic 192 px views with the "
                                      "true one at the centre, it moved 8 px and the rotations 0.14 -> 0.93 deg",
                                      lo=0.0, hi=1.0)
+    radial_p: float = param(1e-3, "With radial in refine_intrinsics: the lens's radial distortion is freed only when "
+                            "that lowers the reprojection error significantly, a likelihood-ratio test at this p-value "
+                            "(1 = always freed): a lens without distortion keeps k1 = 0 and the images are not "
+                            "resampled", lo=0.0, hi=1.0)
     calibrate_on: str = param("trainable", "intrinsics = refine: the views whose bundle adjustment estimates the shared "
                               "camera before the anchors are initialised with it held fixed: trainable (every training "
                               "view) or anchors (the anchors' own initialisation). Measured on scan24_idr's photos "
@@ -96,9 +104,9 @@ class Params:
                                        "direction", lo=0.0, hi=1.0)
 
     def __post_init__(self):
-        unknown = set(self.refine_intrinsics) - {"focal", "principal_point"}
+        unknown = set(self.refine_intrinsics) - set(sfm.REFINABLE)
         if unknown:
-            raise ParamError(f"anchors.refine_intrinsics: {sorted(unknown)} not among focal, principal_point")
+            raise ParamError(f"anchors.refine_intrinsics: {sorted(unknown)} not among {', '.join(sfm.REFINABLE)}")
         if len(self.perturb_rot_deg) != 2 or self.perturb_rot_deg[0] > self.perturb_rot_deg[1]:
             raise ParamError(f"anchors.perturb_rot_deg: expected [lo, hi] with lo <= hi, got {self.perturb_rot_deg}")
 
@@ -124,8 +132,9 @@ def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndar
 
 
 def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Params
-                  ) -> tuple[np.ndarray, np.ndarray, dict, dict]:
-    """(w2c [N,4,4] of the anchors (identity elsewhere), K [N,3,3] the poses belong to, what was done,
+                  ) -> tuple[np.ndarray, posefree.SceneInputs, dict, dict]:
+    """(w2c [N,4,4] of the anchors (identity elsewhere), the inputs with the K and lens distortion the
+    poses belong to (:func:`manifoldneus.posefree.with_intrinsics`), what was done,
     the SfM points in the gauge frame: ``object_points`` [P,3] (those in the foreground or the common
     frustum) and ``sight_lines`` [O,2,3] (:func:`sight_lines`); none for the identity and reference
     initialisations)."""
@@ -135,7 +144,7 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
     K = inputs.views.K
     if p.pose_init == "identity":
         w2c[anchors] = pose_init.identity_init(len(anchors), p.identity_distance)
-        return w2c, K, {"method": "identity"}, no_points
+        return w2c, inputs, {"method": "identity"}, no_points
     if p.pose_init == "reference":
         ref, registered = reference_poses(ctx.input("reference"), n, p.gauge_radius)
         if registered.any():  # pycolmap's intrinsics (refined when it refined them)
@@ -150,9 +159,8 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
             if not registered[a]:
                 nb = [j for j in np.argsort(-inputs.W[a]) if registered[j]]
                 w2c[a] = ref[nb[0]] if nb else np.eye(4)
-        return w2c, K, {"method": "reference", "unregistered": missing}, no_points
+        return w2c, posefree.with_intrinsics(inputs, K), {"method": "reference", "unregistered": missing}, no_points
     inputs, refine, calibration, calibration_rec = calibrated_inputs(ctx, inputs, p)
-    K = inputs.views.K
     res = matches_init(ctx, inputs, anchors, p, refine)
     ids = res.view_ids
     bridges = sorted(set(ids) - set(anchors))
@@ -163,10 +171,14 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
     row = {v: k for k, v in enumerate(ids)}
     w2c[anchors] = res.w2c[[row[a] for a in anchors]]
     if res.diagnostics["refine_intrinsics"] and res.placed.any():
-        placed = np.flatnonzero(res.placed)
-        K = sfm.shared_K(K, inputs.sizes, [ids[k] for k in placed], res.K[placed])
-        log_refined(ctx, res.diagnostics["refine_intrinsics"], inputs.views.K[anchors[0]], K[anchors[0]], "anchors")
-    return w2c, K, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
+        placed = [ids[k] for k in np.flatnonzero(res.placed)]
+        K = sfm.shared_K(inputs.views.K, inputs.sizes, placed, res.K[res.placed])
+        distortion = sfm.shared_K(inputs.views.K, inputs.sizes, placed, res.distortion[res.placed],
+                                  values=np.zeros((n, 4)))
+        log_refined(ctx, res.diagnostics["refine_intrinsics"], inputs.views.K[anchors[0]], K[anchors[0]],
+                    distortion[anchors[0]], "anchors")
+        inputs = posefree.with_intrinsics(inputs, K, distortion)
+    return w2c, inputs, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
                  "bridges": [int(v) for v in bridges], "unplaced": [inputs.names[v] for v in unplaced],
                  "why_unplaced": {inputs.names[v]: res.why_unplaced[v] for v in unplaced},
                  **res.diagnostics, "calibration": calibration}, {"object_points": res.points[res.point_in_mask],
@@ -213,10 +225,10 @@ def lines_of_sight(ctx, res: pose_init.InitResult, calibration: pose_init.InitRe
     return lines
 
 
-def log_refined(ctx, refine, K_before: np.ndarray, K_after: np.ndarray, views: str) -> None:
+def log_refined(ctx, refine, K_before: np.ndarray, K_after: np.ndarray, distortion: np.ndarray, views: str) -> None:
     ctx.log.info("intrinsics refined (%s) on the %s: focal %.1f -> %.1f px, principal point (%.1f, %.1f) -> "
-                 "(%.1f, %.1f)", ", ".join(refine), views, K_before[0, 0], K_after[0, 0], *K_before[:2, 2],
-                 *K_after[:2, 2])
+                 "(%.1f, %.1f), radial distortion k1 %.4g", ", ".join(refine), views, K_before[0, 0], K_after[0, 0],
+                 *K_before[:2, 2], *K_after[:2, 2], distortion[0])
 
 
 def calibrated_inputs(ctx, inputs: posefree.SceneInputs, p: Params
@@ -227,33 +239,37 @@ def calibrated_inputs(ctx, inputs: posefree.SceneInputs, p: Params
     refine = tuple(p.refine_intrinsics) if sfm.intrinsics_mode(p.intrinsics, inputs.intrinsics_source) == "refine" else ()
     if not refine or p.calibrate_on != "trainable":
         return inputs, refine, None, None
-    K, calibration, reconstruction = self_calibrate(ctx, inputs, refine, p)
-    return posefree.with_intrinsics(inputs, K), (), calibration, reconstruction
+    K, distortion, calibration, reconstruction = self_calibrate(ctx, inputs, refine, p)
+    return posefree.with_intrinsics(inputs, K, distortion), (), calibration, reconstruction
 
 
 def self_calibrate(ctx, inputs: posefree.SceneInputs, refine, p: Params
-                   ) -> tuple[np.ndarray, dict, pose_init.InitResult | None]:
+                   ) -> tuple[np.ndarray, np.ndarray | None, dict, pose_init.InitResult | None]:
     """The shared camera's intrinsics ``refine`` estimated by COLMAP's mapper and bundle adjustment on every
     trainable view's matches (a few anchors at a narrow field of view do not pin the principal point down);
-    (K [N,3,3], what was done, the reconstruction). Its poses are not kept: the anchors are initialised
-    afterwards, K fixed."""
+    (K [N,3,3], lens distortion [N,4] or None, what was done, the reconstruction). Its poses are not kept:
+    the anchors are initialised afterwards, K fixed, on keypoints without the distortion."""
     ids = [int(v) for v in np.flatnonzero(inputs.train_mask)]
     with io.native_output_to(ctx.log_path):
         res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
                                           sizes=inputs.sizes, refine=refine,
                                           prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px,
                                           final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px,
-                                          principal_point_p=p.principal_point_p, seed=ctx.section("run").seed,
-                                          log=ctx.log.info)
+                                          principal_point_p=p.principal_point_p, radial_p=p.radial_p,
+                                          seed=ctx.section("run").seed, log=ctx.log.info)
     placed = np.flatnonzero(res.placed)
     if len(placed) == 0:
         ctx.log.warning("self-calibration registered no view; the intrinsics stay as the ingest gave them")
-        return inputs.views.K, {"views": len(ids), "registered": 0}, None
+        return inputs.views.K, None, {"views": len(ids), "registered": 0}, None
     K = sfm.shared_K(inputs.views.K, inputs.sizes, [ids[k] for k in placed], res.K[placed])
+    distortion = sfm.shared_K(inputs.views.K, inputs.sizes, [ids[k] for k in placed], res.distortion[placed],
+                              values=np.zeros((len(K), 4)))
     first = ids[placed[0]]
-    log_refined(ctx, refine, inputs.views.K[first], K[first], f"{len(placed)}/{len(ids)} trainable views")
-    return K, {"views": len(ids), "registered": int(len(placed)), "refine": list(refine), "K": K[first].tolist(),
+    log_refined(ctx, refine, inputs.views.K[first], K[first], distortion[first], f"{len(placed)}/{len(ids)} trainable views")
+    return K, distortion, {"views": len(ids), "registered": int(len(placed)), "refine": list(refine),
+               "K": K[first].tolist(), "distortion": distortion[first].tolist(),
                "principal_point_test": res.diagnostics["principal_point_test"],
+               "radial_test": res.diagnostics["radial_test"],
                "mean_reproj_px": res.diagnostics["mean_reproj_px"], "seconds": res.diagnostics["seconds_total"]}, res
 
 
@@ -277,8 +293,8 @@ def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Param
                                            gauge_radius=p.gauge_radius, masks=masks,
                                            object_min_seen=p.object_min_seen,
                                            object_gauge_percentile=p.object_gauge_percentile,
-                                           principal_point_p=p.principal_point_p, seed=ctx.section("run").seed,
-                                           log=ctx.log.info)
+                                           principal_point_p=p.principal_point_p, radial_p=p.radial_p,
+                                           seed=ctx.section("run").seed, log=ctx.log.info)
 
 
 def init_views(anchors: list[int], W: np.ndarray, trainable, min_matches: int) -> list[int]:
@@ -327,8 +343,7 @@ def run(ctx) -> None:
         raise RuntimeError(f"only {len(anchors)} trainable anchor view(s); check schedule.anchor_percent and "
                            f"split.holdout_every")
     n = len(inputs.names)
-    w2c0, K, init_info, sfm_points = initial_poses(ctx, inputs, anchors, p)
-    inputs = posefree.with_intrinsics(inputs, K)  # every round from here on uses them
+    w2c0, inputs, init_info, sfm_points = initial_poses(ctx, inputs, anchors, p)  # every round uses its K and lens
     if max(p.perturb_rot_deg, default=0.0) > 0 or p.perturb_centre_frac > 0:
         w2c0[anchors] = perturbed(w2c0[anchors], p, ctx.section("run").seed)
         init_info["perturbed"] = {"rot_deg": list(p.perturb_rot_deg), "centre_frac": p.perturb_centre_frac}
@@ -336,7 +351,8 @@ def run(ctx) -> None:
                      p.perturb_rot_deg, p.perturb_centre_frac)
     placed = np.zeros(n, bool)
     placed[anchors] = True
-    artifacts.save_initial_poses(ctx.out, {"w2c": w2c0, "placed": placed, "K": K,
+    lens = {} if inputs.distortion is None else {"distortion": inputs.distortion}
+    artifacts.save_initial_poses(ctx.out, {"w2c": w2c0, "placed": placed, "K": inputs.views.K, **lens,
                                            **{k: v.astype(np.float32) for k, v in sfm_points.items()}})
     ctx.log.info("anchors %s initialised by %s", [inputs.names[a] for a in anchors], init_info["method"])
 

@@ -96,6 +96,8 @@ def intrinsics_report(ctx, rounds: list[tuple[str, dict]], K_gt: np.ndarray | No
         return {"focal_px": float(K[:, [0, 1], [0, 1]].mean()), "principal_point_px": K[:, :2, 2].mean(0).tolist()}
 
     out["start"], out["final"] = describe(ingest_K), describe(final["K"])
+    if final.get("distortion") is not None:  # the lens distortion the self-calibration found and removed
+        out["final"]["distortion"] = np.asarray(final["distortion"])[placed].mean(0).tolist()
     if K_gt is not None:
         out["ground_truth"] = describe(K_gt)
         for key in ("start", "final"):
@@ -193,7 +195,7 @@ def run(ctx) -> None:
     final_dir = ctx.input("successors") / "final"
     final = artifacts.load_round(final_dir)
     if len(held):
-        views = artifacts.load_views(ctx.input("ingest"), final["w2c"], final["K"])
+        views = artifacts.load_views(ctx.input("ingest"), final["w2c"], final["K"], final.get("distortion"))
         ids = np.flatnonzero(final["optimised"].astype(bool))
         trainer = evaluation.trainer_from_checkpoint(final_dir / "model.pt", posefree.subset_views(views, ids, final["w2c"]),
                                                      ctx.section("run").device)

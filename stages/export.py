@@ -12,7 +12,10 @@ Frame (``export.frame``): ``input`` is the world of the input's own cameras wher
 them (DTU's ``cameras*.npz`` in mm, a COLMAP model's world, the synthetic scene's frame): the
 similarity fitted on the final camera centres onto those cameras (Umeyama, as ``evaluate``), then
 the input's unit-sphere normalisation undone. That is why this stage reads ``ground_truth``; only
-this frame is taken from it, nothing of the method. A scene without cameras of its own (a plain
+this frame is taken from it, nothing of the method. In that frame the views held out for evaluation
+(the schedule's) are exported too, at the input's own cameras (they have no pose of the method), and
+transforms.json lists them as nerfstudio's test and validation split (``test_filenames``), the
+method's views as its training split. A scene without cameras of its own (a plain
 photo folder) has no input world: the exports stay in the method's unit-sphere frame. Either way
 ``world_from_model.json`` holds the similarity from the method's frame to the exports' frame.
 """
@@ -33,11 +36,13 @@ class Params:
     frame: str = param("input", "Frame of the exports: input (the input cameras' world, where the scene has "
                        "cameras; else the method's) | model (the method's unit-sphere frame)",
                        choices=["input", "model"])
-    images: bool = param(True, "Write the ingested images (and masks) that transforms.json and the COLMAP model name")
+    images: bool = param(True, "Write the ingested images (and masks) that transforms.json and the COLMAP model name "
+                         "(without the lens distortion the self-calibration found, if it found one: the exported "
+                         "cameras are pinhole cameras)")
     vertex_colours: bool = param(True, "Colour the mesh's vertices with the final field's colour seen head-on")
 
 
-UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "mesh")
+UPSTREAM = ("ingest", "ground_truth", "schedule", "anchors", "successors", "mesh")
 SECTIONS = ("export", "run.device")
 OUTPUTS = ("colmap", export.TRANSFORMS, "mesh.ply", "mesh.glb", export.FRAME)
 
@@ -76,11 +81,23 @@ def run(ctx) -> None:
     final = artifacts.load_round(final_dir)
     w2c, placed = final["w2c"], final["placed"].astype(bool)
     valid = placed & final["optimised"].astype(bool)
-    views = artifacts.load_views(ctx.input("ingest"), w2c, final["K"])
+    views = artifacts.load_views(ctx.input("ingest"), w2c, final["K"], final.get("distortion"))
+    lens_k1 = None if final.get("distortion") is None else float(final["distortion"][valid][:, 0].mean())
+    if lens_k1 is not None:  # the images written below are undistorted, so every exported camera is a pinhole
+        ctx.log.info("the images are exported without the lens distortion the self-calibration found (k1 %.4g): "
+                     "every exported camera is a pinhole camera", lens_k1)
     M, frame, units, how = world_from_model(ctx.input("ground_truth"), w2c, valid, p.frame)
     ctx.log.info("exports in the %s frame (%s): %s", frame, units, how)
     s, R, t = cameras.sim3_from_matrix(M)
     w2c_world = rigid(cameras.transform_w2c(w2c, s, R, t))  # [N,4,4]
+    held = np.isin(np.arange(len(w2c)), artifacts.load_schedule(ctx.input("schedule"))["meta"]["held_out_views"])
+    held &= ~placed & (frame == "input")  # the input's own cameras place them in its frame only
+    if held.any():
+        gt = artifacts.load_ground_truth_poses(ctx.input("ground_truth"), ["w2c", "normalization"])
+        w2c_world[held] = rigid(cameras.transform_w2c(gt["w2c"][held], *cameras.sim3_from_matrix(gt["normalization"])))
+        ctx.log.info("%d held-out views exported at the input's own cameras (transforms.json: test_filenames)",
+                     int(held.sum()))
+    exported = placed | held
 
     import trimesh
 
@@ -104,19 +121,20 @@ def run(ctx) -> None:
     if len(points):
         ply = "sparse_points.ply"
         export.write_points_ply(ctx.out / ply, points, colours)
-    export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c_world, w, h, valid=placed, points=points,
-                             colours=colours)
+    export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c_world, w, h, valid=exported,
+                             points=points, colours=colours)
     mask_dir = "masks" if p.images and views.masks is not None else None
-    export.write_transforms_json(ctx.out / export.TRANSFORMS, views.names, views.K, w2c_world, w, h, valid=placed,
-                                 mask_dir=mask_dir, ply_file_path=ply)
+    export.write_transforms_json(ctx.out / export.TRANSFORMS, views.names, views.K, w2c_world, w, h, valid=exported,
+                                 mask_dir=mask_dir, ply_file_path=ply, test=held)
     if p.images:
         for folder, stack in (("images", views.images), (mask_dir, views.masks)):
             if folder is None:
                 continue
             (ctx.out / folder).mkdir()
-            for i in np.flatnonzero(placed):
+            for i in np.flatnonzero(exported):
                 io.save_png(ctx.out / folder / export.image_filename(views.names[i]), stack[i])
     export.write_frame(ctx.out / export.FRAME, M, frame, units, how, gltf_from_world)
-    ctx.metrics.update(frame=frame, units=units, scale=s, views_exported=int(placed.sum()), sfm_points=len(points),
+    ctx.metrics.update(frame=frame, units=units, scale=s, views_exported=int(placed.sum()), held_out_exported=int(held.sum()), sfm_points=len(points),
+                       lens_k1_removed=lens_k1,
                        vertices=int(len(mesh.vertices)), faces=int(len(mesh.faces)),
                        vertex_colours=bool(p.vertex_colours and len(mesh.faces)))

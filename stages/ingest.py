@@ -46,6 +46,9 @@ class Params:
     synthetic_resolution: int = param(192, "Synthetic scene: image side in pixels", lo=32, hi=1024)
     synthetic_floor: bool = param(False, "Synthetic scene: the object stands on a textured floor (background, not in "
                                   "the masks), like an object on a table")
+    synthetic_lens_k1: float = param(0.0, "Synthetic scene: radial distortion k1 of its lens (OpenCV's model; K is the "
+                                     "pinhole part): the images are rendered through it, to test ingest.distortion "
+                                     "(known) or anchors.intrinsics = refine (estimated)", lo=-2.0, hi=2.0)
     synthetic_surface_points: int = param(200000, "Synthetic scene: exact surface samples for Chamfer", lo=1000)
 
 

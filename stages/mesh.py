@@ -24,7 +24,7 @@ def run(ctx) -> None:
     final = ctx.input("successors") / "final"
     result = artifacts.load_round(final)
     w2c, placed = result["w2c"], result["placed"].astype(bool)
-    views = artifacts.load_views(ctx.input("ingest"), w2c, result["K"])
+    views = artifacts.load_views(ctx.input("ingest"), w2c, result["K"], result.get("distortion"))
     ids = np.flatnonzero(result["optimised"].astype(bool))
     trainer = evaluation.trainer_from_checkpoint(final / "model.pt", posefree.subset_views(views, ids, w2c),
                                                  ctx.section("run").device)

@@ -161,7 +161,7 @@ def run_colmap(
     rec, n_models = sfm.incremental_mapping(db, opts, work_dir, image_dir)
     pp_test = None
     if rec is not None and first != refine:
-        rec, pp_test = sfm.free_principal_point(rec, refine, principal_point_p, log=say)
+        rec, pp_test = sfm.free_intrinsic(rec, refine, "principal_point", principal_point_p, log=say)
     t_map = time.perf_counter() - t0
     say(f"pycolmap incremental mapping: {t_map:.2f} s, {n_models} model(s)")
     poses = sfm.read_poses(rec, names, K)

@@ -91,7 +91,7 @@ def run(ctx) -> None:
         n_rounds = p.max_rounds
     prev_dir = ctx.input("anchors") / "round_0"
     prev = artifacts.load_round(prev_dir)
-    inputs = posefree.with_intrinsics(inputs, prev["K"])  # the anchors' (refined when they refined them)
+    inputs = posefree.with_intrinsics(inputs, prev["K"], prev.get("distortion"))  # the anchors' (refined, if they were)
     carry = {k: v for k, v in torch.load(prev_dir / "model.pt", map_location="cpu", weights_only=False).items()
              if k in ("field", "background", "cache")}
     w2c, placed = prev["w2c"], prev["placed"].astype(bool)

@@ -123,3 +123,34 @@ def test_skew_and_rotvec_numpy_and_torch():
     np.testing.assert_allclose(R, torch.linalg.matrix_exp(torch.from_numpy(cameras.skew(w))).numpy(), atol=1e-12)
     np.testing.assert_allclose(cameras.rotvec_to_matrix(np.array([0.0, 0.0, np.pi / 2]))[0] @ [1.0, 0, 0], [0, 1.0, 0],
                                atol=1e-15)
+
+
+def test_undistortion_inverts_the_lens():
+    """OpenCV's lens model both ways: undistort_points takes cv2.projectPoints' distorted pixels back to the
+    pinhole ones, and a synthetic view rendered through a lens (k1 = -1), undistorted with that lens, is the
+    pinhole render of the view (away from the border the lens leaves uncovered; within the resampling's blur)."""
+    import cv2
+
+    from manifoldneus import synthetic
+
+    K = synthetic.intrinsics(128, 128)
+    lens = np.array([-1.0, 0.0, 0.002, 0.0])
+    X = np.random.default_rng(0).uniform([-0.2, -0.2, 2.0], [0.2, 0.2, 4.0], (200, 3))  # [M,3] camera frame
+    distorted = cv2.projectPoints(X, np.zeros(3), np.zeros(3), K, lens)[0].reshape(-1, 2)
+    assert np.abs(cameras.undistort_points(distorted, K, lens) - cameras.project_points(K, X)).max() < 1e-6
+
+    res = 256  # at 128 px the texture's finest scale is the pixel: resampling blurs it as much as the lens moves it
+    K = synthetic.intrinsics(res, res)
+    w2c = synthetic.camera_poses(6)[2]
+    through_lens, mask = synthetic.render_view(K, w2c, res, res, k1=-1.0)[:2]
+    pinhole = synthetic.render_view(K, w2c, res, res)[0]
+
+    def blurred(image):  # the lens's compression of the periphery loses the finest texture for good
+        return cv2.GaussianBlur(image.astype(np.float32), (0, 0), 3.0)
+
+    inner = np.zeros_like(mask)
+    inner[48:-48, 48:-48] = True
+    after = np.abs(blurred(cameras.undistort_image(through_lens, K, [-1.0, 0, 0, 0])) - blurred(pinhole))[inner].mean()
+    before = np.abs(blurred(through_lens) - blurred(pinhole))[inner].mean()
+    assert after < 0.25 * before, (after, before)
+    assert cameras.undistort_image(mask, K, [-1.0, 0, 0, 0], nearest=True).dtype == bool

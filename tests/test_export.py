@@ -99,7 +99,8 @@ def test_colmap_model_has_one_camera_per_set_of_intrinsics_and_the_points(tmp_pa
 def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
     """The tiny run's exports: the COLMAP model (read by pycolmap) and transforms.json give the same
     poses to 1e-9, namely the final poses mapped by world_from_model.json; in the synthetic scene
-    that frame is its ground truth's, so the exported centres lie near the true cameras."""
+    that frame is its ground truth's, so the exported centres lie near the true cameras. The held-out
+    views are exported too, at the input's own cameras, as nerfstudio's test split."""
     pytest.importorskip("pycolmap")
     import trimesh
 
@@ -112,12 +113,20 @@ def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
     frame = export.read_frame(out / export.FRAME)
     assert frame["frame"] == "input" and frame["units"] == "unit"
     expected = cameras.transform_w2c(final["w2c"], *cameras.sim3_from_matrix(frame["world_from_model"]))
+    gt_poses = artifacts.load_ground_truth_poses(versions["ground_truth"], ["w2c", "normalization"])
+    held = np.isin(np.arange(len(names)), artifacts.load_schedule(versions["schedule"])["meta"]["held_out_views"])
+    assert held.any() and not (held & placed).any()
+    expected[held] = cameras.transform_w2c(gt_poses["w2c"][held], *cameras.sim3_from_matrix(gt_poses["normalization"]))
+    exported = placed | held
 
     from_colmap = colmap_poses(out / "colmap")
     from_json = export.read_transforms_json(out / export.TRANSFORMS)
-    assert sorted(from_colmap) == sorted(f"{names[i]}.png" for i in np.flatnonzero(placed))
-    assert from_json["files"] == [f"images/{names[i]}.png" for i in np.flatnonzero(placed)]
-    for k, i in enumerate(np.flatnonzero(placed)):
+    assert sorted(from_colmap) == sorted(f"{names[i]}.png" for i in np.flatnonzero(exported))
+    assert from_json["files"] == [f"images/{names[i]}.png" for i in np.flatnonzero(exported)]
+    split = json.loads((out / export.TRANSFORMS).read_text())
+    assert split["test_filenames"] == split["val_filenames"] == [f"images/{names[i]}.png" for i in np.flatnonzero(held)]
+    assert split["train_filenames"] == [f"images/{names[i]}.png" for i in np.flatnonzero(placed)]
+    for k, i in enumerate(np.flatnonzero(exported)):
         np.testing.assert_allclose(from_colmap[f"{names[i]}.png"][0], from_json["w2c"][k], rtol=0, atol=1e-9)
         # the rounds' poses are float32: exported, their rotations are made exactly orthonormal
         np.testing.assert_allclose(from_json["w2c"][k], expected[i], rtol=0, atol=1e-6)
@@ -207,6 +216,6 @@ def test_nerfstudio_reads_the_export_when_installed(tiny_run):
     parsed = NerfstudioDataParserConfig(data=out, orientation_method="none", center_method="none",
                                         auto_scale_poses=False, train_split_fraction=1.0,
                                         load_3D_points=True).setup().get_dataparser_outputs("train")
-    assert len(parsed.image_filenames) == len(meta["frames"])
+    assert len(parsed.image_filenames) == len(meta["train_filenames"]) < len(meta["frames"])
     assert float(parsed.cameras.fx[0]) == pytest.approx(meta["fl_x"])
     assert parsed.metadata["points3D_xyz"].shape[0] > 20

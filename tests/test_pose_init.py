@@ -324,9 +324,10 @@ def test_principal_point_off_the_centre_is_refined():
     assert rot(both) < 4 * rot(true_K) + 0.1, (rot(both), rot(true_K))
 
 
-def test_principal_point_at_the_centre_is_not_freed():
-    """The same test on photos whose principal point is the centre: freeing it does not lower the
-    reprojection error significantly, so it stays where it started."""
+def test_principal_point_at_the_centre_and_no_lens_distortion_are_not_freed():
+    """The same test on pinhole photos whose principal point is the centre: freeing either the radial
+    distortion or the principal point does not lower the reprojection error significantly, so both stay
+    where they started (and the images would not be resampled)."""
     from manifoldneus import synthetic
     from stages.features import extract_all
     from stages.matching import exhaustive_pairs, match_pairs
@@ -336,10 +337,12 @@ def test_principal_point_at_the_centre_is_not_freed():
     feats = extract_all(s.images, workers=2)
     pairs = PI.pairs_from_matches(match_pairs(feats, exhaustive_pairs(n), s.K, workers=2))
     out = PI.init_from_matches(list(range(n)), s.K, [f["keypoints"] for f in feats], pairs,
-                               refine=("focal", "principal_point"), prior_focal=False, principal_point_p=1e-3)
-    test = out.diagnostics["principal_point_test"]
-    assert not test["freed"] and test["chi2"] < test["threshold"], test
+                               refine=("focal", "principal_point", "radial"), prior_focal=False,
+                               principal_point_p=1e-3, radial_p=1e-3)
+    for test in (out.diagnostics["principal_point_test"], out.diagnostics["radial_test"]):
+        assert not test["freed"] and test["chi2"] < test["threshold"], test
     assert np.allclose(out.K[:, :2, 2], s.K[:, :2, 2])
+    assert not out.distortion.any()
 
 
 def test_focal_length_is_refined_from_a_wrong_guess():
