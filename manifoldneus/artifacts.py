@@ -12,9 +12,30 @@ import numpy as np
 from manifoldneus import io
 from manifoldneus.views import Views
 
+VIEWS = "views.zarr"  # ingest's arrays: images, K, masks, priors
+VIEWS_META = "views.json"  # ingest's names, layout, intrinsics_source, has_cameras, ...
+GT_META = "gt.json"  # ground_truth's has_poses, has_surface, units
 INITIAL_POSES = "initial_poses.zarr"
 COVISIBILITY = "covisibility.zarr"
 POSES = "poses.zarr"  # the same name in reference, ground_truth, mesh and every pose-free round
+
+
+def load_views_meta(ingest_dir: Path) -> dict:
+    """``ingest``'s ``views.json``: ``names``, ``layout``, ``intrinsics_source``, ``has_cameras``, ..."""
+    return io.load_json(Path(ingest_dir) / VIEWS_META)
+
+
+def load_views_arrays(ingest_dir: Path, names: list[str] | None = None) -> dict:
+    """``ingest``'s ``views.zarr``: ``images``, ``K`` and, where the scene has them, ``masks``,
+    ``mono_depth``, ``mono_normal`` (all, or ``names``)."""
+    return io.load_arrays(Path(ingest_dir) / VIEWS, names)
+
+
+def load_gt_meta(gt_dir: Path) -> dict:
+    """``ground_truth``'s ``gt.json`` (``has_poses``, ``has_surface``, ``units``); {} where the stage
+    wrote none."""
+    path = Path(gt_dir) / GT_META
+    return io.load_json(path) if path.is_file() else {}
 
 
 def load_views(ingest_dir: Path, w2c: np.ndarray | None = None, K: np.ndarray | None = None,
@@ -23,8 +44,8 @@ def load_views(ingest_dir: Path, w2c: np.ndarray | None = None, K: np.ndarray | 
     identity placeholders: ingest never holds poses; intrinsics: ``K`` [N,3,3], e.g. a round's, which
     the anchors may have refined, else the ingest's; ``distortion`` [N,4]: the lens distortion the
     anchors' self-calibration found (a round's), removed from the images and masks)."""
-    arrays = io.load_arrays(Path(ingest_dir) / "views.zarr")
-    names = io.load_json(Path(ingest_dir) / "views.json")["names"]
+    arrays = load_views_arrays(ingest_dir)
+    names = load_views_meta(ingest_dir)["names"]
     w2c = np.tile(np.eye(4), (len(names), 1, 1)) if w2c is None else w2c
     return Views(arrays["images"], arrays["K"] if K is None else K, w2c, arrays.get("masks"), arrays.get("mono_depth"),
                  arrays.get("mono_normal"), names).undistorted(distortion)

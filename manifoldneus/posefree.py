@@ -100,7 +100,7 @@ def load_inputs(ingest: Path, features: Path, matching: Path, covisibility: Path
     from manifoldneus.pose_init import pairs_from_matches
 
     views = artifacts.load_views(ingest)  # identity placeholders for the poses
-    meta = io.load_json(ingest / "views.json")
+    meta = artifacts.load_views_meta(ingest)
     n = views.n
     feats, _ = artifacts.load_features(features / "features.zarr")
     matches, _ = artifacts.load_matches(matching / "matches.zarr")

@@ -110,7 +110,7 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
     """What the page draws, from the version folders of one run (stage -> folder; ``ingest``,
     ``ground_truth``, ``schedule``, ``reference``, ``anchors``, ``successors`` and ``export``)."""
 
-    views_meta = io.load_json(versions["ingest"] / "views.json")
+    views_meta = artifacts.load_views_meta(versions["ingest"])
     names, width, height = views_meta["names"], views_meta["width"], views_meta["height"]
     K = artifacts.load_round_arrays(versions["successors"] / "final", ["K"])["K"]  # the intrinsics the poses belong to
     n = len(names)
@@ -126,7 +126,7 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
     depth = FRUSTUM_FRACTION * float(np.linalg.norm(centres - centres.mean(0), axis=1).mean() or 1.0)
 
     gt = None
-    gt_meta = io.load_json(versions["ground_truth"] / "gt.json")
+    gt_meta = artifacts.load_gt_meta(versions["ground_truth"])
     if gt_meta.get("has_poses") and final_posed.sum() >= 3:
         gt_w2c = artifacts.load_ground_truth_poses(versions["ground_truth"], ["w2c"])["w2c"]
         # the Sim3 final -> GT that `evaluate` and `export` fit, undone: GT in the method's frame, then this one

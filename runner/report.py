@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus import artifacts, io, pose_metrics
+from manifoldneus.artifacts import load_views_meta  # build_report's `artifacts` is the folder
 from manifoldneus.scenes import SceneError, resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, PipelineError
 from runner.store import Store
@@ -110,7 +111,7 @@ class GroundTruth:
 def load_ground_truth(gt_dir: Path | None) -> GroundTruth | None:
     if gt_dir is None:
         return None
-    meta = io.load_json(gt_dir / "gt.json")
+    meta = artifacts.load_gt_meta(gt_dir)
     if not meta.get("has_poses"):
         return None
     w2c = artifacts.load_ground_truth_poses(gt_dir, ["w2c"])["w2c"]
@@ -603,7 +604,7 @@ def build_report(scene: str, artifacts: Path = DEFAULT_ARTIFACTS, out: Path | No
     section_pose_errors(page, rows, gt, scene)
     if gt and rows.get("ManifoldNeuS"):
         placed = placement_round(rounds["ManifoldNeuS"])
-        names = io.load_json(shared_stage(pointers, "ingest") / "views.json")["names"]
+        names = load_views_meta(shared_stage(pointers, "ingest"))["names"]
         section_pose_per_view(page, rows, pose_error_rows([placed], gt) if placed else None, names)
     section_schedule(page, systems, scene)
     section_cameras(page, systems, reference, rows, gt)

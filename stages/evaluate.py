@@ -86,10 +86,10 @@ def plot_rounds(rows: list[dict], path, units: str) -> None:
 def intrinsics_report(ctx, rounds: list[tuple[str, dict]], K_gt: np.ndarray | None) -> dict:
     """The intrinsics the ingest started from and those the poses ended with (mean over the views
     the last round placed), and their error against the layout's own calibration where it has one."""
-    ingest_K = io.load_arrays(ctx.input("ingest") / "views.zarr", ["K"])["K"]
+    ingest_K = artifacts.load_views_arrays(ctx.input("ingest"), ["K"])["K"]
     final = rounds[-1][1]
     placed = final["placed"].astype(bool)
-    out = {"source": io.load_json(ctx.input("ingest") / "views.json").get("intrinsics_source", "calibrated")}
+    out = {"source": artifacts.load_views_meta(ctx.input("ingest")).get("intrinsics_source", "calibrated")}
 
     def describe(K):
         K = np.asarray(K)[placed]
@@ -111,8 +111,8 @@ def intrinsics_report(ctx, rounds: list[tuple[str, dict]], K_gt: np.ndarray | No
 
 def run(ctx) -> None:
     p: Params = ctx.params
-    gt_meta = io.load_json(ctx.input("ground_truth") / "gt.json")
-    names = io.load_json(ctx.input("ingest") / "views.json")["names"]
+    gt_meta = artifacts.load_gt_meta(ctx.input("ground_truth"))
+    names = artifacts.load_views_meta(ctx.input("ingest"))["names"]
     report: dict = {"label": ctx.scene}
     if not gt_meta["has_poses"]:
         ctx.log.warning("no ground truth: nothing to evaluate against")

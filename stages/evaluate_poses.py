@@ -39,7 +39,7 @@ OUTPUTS = ("reference_pose_metrics.json",)
 
 
 def _units_scale(gt_dir: Path, normalization: np.ndarray) -> tuple[float, str]:
-    meta = io.load_json(gt_dir / "gt.json") if (gt_dir / "gt.json").is_file() else {}
+    meta = artifacts.load_gt_meta(gt_dir)
     units = meta.get("units") or "unit"
     scale = meta.get("units_per_scene_unit")
     if scale is None:
@@ -54,7 +54,7 @@ def evaluate_pose_artifact(est_dir, gt_dir, out_dir, label: str, names=None, wit
     ``out_dir``. Returns the JSON-safe summary dict (also written)."""
     est_dir, gt_dir, out_dir = Path(est_dir), Path(gt_dir), Path(out_dir)
     json_path = out_dir / f"{label}_pose_metrics.json"
-    gt_meta = io.load_json(gt_dir / "gt.json") if (gt_dir / "gt.json").is_file() else {}
+    gt_meta = artifacts.load_gt_meta(gt_dir)
     if not gt_meta.get("has_poses", (gt_dir / artifacts.POSES).exists()):
         out = {"label": label, "evaluated": False, "reason": "the scene has no ground-truth poses"}
         io.save_json(json_path, out)
@@ -117,7 +117,7 @@ def metrics_for_manifest(out: dict, prefix: str) -> dict:
 
 
 def run(ctx) -> None:
-    names = io.load_json(ctx.input("ingest") / "views.json")["names"]
+    names = artifacts.load_views_meta(ctx.input("ingest"))["names"]
     out = evaluate_pose_artifact(ctx.input("reference"), ctx.input("ground_truth"), ctx.out, "reference",
                                  names=names, with_scale=ctx.params.with_scale, log=ctx.log)
     ctx.metrics.update(metrics_for_manifest(out, "reference"))

@@ -49,7 +49,7 @@ OUTPUTS = ("colmap", export.TRANSFORMS, "mesh.ply", "mesh.glb", export.FRAME)
 
 def world_from_model(gt_dir, w2c: np.ndarray, valid: np.ndarray, frame: str) -> tuple[np.ndarray, str, str, str]:
     """(4x4 similarity method -> export frame, frame name, units, how it was found)."""
-    gt_meta = io.load_json(gt_dir / "gt.json")
+    gt_meta = artifacts.load_gt_meta(gt_dir)
     if frame == "model":
         return np.eye(4), "model", "model units", "export.frame = model"
     if not gt_meta.get("has_poses"):

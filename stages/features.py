@@ -29,8 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from manifoldneus import artifacts
 from manifoldneus.config import param
-from manifoldneus.io import load_arrays, load_json, save_arrays
+from manifoldneus.io import save_arrays
 
 
 @dataclass
@@ -173,10 +174,10 @@ def pack_features(feats: list[dict]) -> dict:
 def run(ctx) -> None:
     p: Params = ctx.params
     src = Path(ctx.input("ingest"))
-    meta = load_json(src / "views.json")
+    meta = artifacts.load_views_meta(src)
     names = list(meta["names"])
     wanted = ["images"] + (["masks"] if p.use_mask and meta.get("has_masks") else [])
-    arrays = load_arrays(src / "views.zarr", wanted)
+    arrays = artifacts.load_views_arrays(src, wanted)
     images = arrays["images"]
     masks = arrays.get("masks")
     if p.use_mask and masks is None:

@@ -12,16 +12,16 @@ from stages.ingest import Params, input_signature  # same section: what to read 
 
 UPSTREAM = ("ingest",)
 SECTIONS = ("ingest",)
-OUTPUTS = ("gt.json",)
+OUTPUTS = (artifacts.GT_META,)
 
 
 def run(ctx) -> None:
     gt = scenes.read_ground_truth(ctx.scene_ref, ctx.params)
-    meta = io.load_json(ctx.input("ingest") / "views.json")
+    meta = artifacts.load_views_meta(ctx.input("ingest"))
     names = meta["names"]
     if gt is None:
         ctx.log.info("scene has no ground-truth poses; evaluation will report what it can without them")
-        io.save_json(ctx.out / "gt.json", {"has_poses": False, "has_surface": False, "units": None})
+        io.save_json(ctx.out / artifacts.GT_META, {"has_poses": False, "has_surface": False, "units": None})
         ctx.metrics["has_poses"] = False
         return
     if len(gt["w2c"]) != len(names):
@@ -31,7 +31,7 @@ def run(ctx) -> None:
     # its masks, for the GT-pose reference surface when the method runs without them
     own = scenes.layout_reference(ctx.scene_ref, ctx.params) if (
         meta["intrinsics_source"] != "calibrated" or not ctx.params.load_masks) else {}
-    K = (io.load_arrays(ctx.input("ingest") / "views.zarr", ["K"])["K"] if meta["intrinsics_source"] == "calibrated"
+    K = (artifacts.load_views_arrays(ctx.input("ingest"), ["K"])["K"] if meta["intrinsics_source"] == "calibrated"
          else own.get("K"))
     if K is not None:
         arrays["K"] = K
@@ -41,6 +41,6 @@ def run(ctx) -> None:
         arrays["surface_points"] = gt["surface_points"]
     artifacts.save_ground_truth_poses(ctx.out, arrays)
     scale = float(abs(np.linalg.det(gt["normalization"][:3, :3])) ** (1 / 3))
-    io.save_json(ctx.out / "gt.json", {"has_poses": True, "has_surface": "surface_points" in gt,
+    io.save_json(ctx.out / artifacts.GT_META, {"has_poses": True, "has_surface": "surface_points" in gt,
                                        "units": gt["units"], "units_per_scene_unit": scale})
     ctx.metrics.update(has_poses=True, units=gt["units"])

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import io, scenes
+from manifoldneus import artifacts, io, scenes
 from manifoldneus.config import param
 
 
@@ -54,7 +54,7 @@ class Params:
 
 UPSTREAM = ()
 SECTIONS = ("ingest",)
-OUTPUTS = ("views.zarr", "views.json", "contact_sheet.png")
+OUTPUTS = (artifacts.VIEWS, artifacts.VIEWS_META, "contact_sheet.png")
 
 
 def input_signature(scene, p: Params) -> str:
@@ -91,8 +91,8 @@ def run(ctx) -> None:
                                 f"least {MIN_VIEWS} overlapping photos of the object")
     ctx.log.info("read %d views of %dx%d (%s layout): %s", n, w, h, layout,
                  ", ".join(k for k in ("masks", "mono_depth", "mono_normal") if k in views) or "no masks or priors")
-    io.save_arrays(ctx.out / "views.zarr", views)
-    io.save_json(ctx.out / "views.json", {
+    io.save_arrays(ctx.out / artifacts.VIEWS, views)
+    io.save_json(ctx.out / artifacts.VIEWS_META, {
         "names": names, "height": h, "width": w, "layout": layout,
         "has_masks": "masks" in views, "has_mono_depth": "mono_depth" in views,
         "has_mono_normal": "mono_normal" in views, "intrinsics_source": intrinsics_source,

@@ -49,7 +49,8 @@ import numpy as np
 
 from manifoldneus.cameras import pixels_to_normalised
 from manifoldneus.config import param
-from manifoldneus.io import file_digest, load_arrays, load_json, save_arrays
+from manifoldneus import artifacts
+from manifoldneus.io import array_names, file_digest, load_arrays, save_arrays
 
 METHODS = {
     "magsac": "USAC_MAGSAC",
@@ -335,7 +336,7 @@ def match_pairs(
 def run(ctx) -> None:
     p: Params = ctx.params
     src = Path(ctx.input("ingest"))
-    meta = load_json(src / "views.json")
+    meta = artifacts.load_views_meta(src)
     names = list(meta["names"])
     fa = load_arrays(Path(ctx.input("features")) / "features.zarr", ["offsets", "keypoints", "descriptors"])
     off = fa["offsets"]
@@ -347,10 +348,8 @@ def run(ctx) -> None:
         raise RuntimeError(f"features has {len(feats)} views but ingest has {len(names)}: rerun features")
     K = None
     if p.use_intrinsics:
-        from manifoldneus.io import array_names
-
-        if "K" in array_names(src / "views.zarr"):
-            K = load_arrays(src / "views.zarr", ["K"])["K"].astype(np.float64)
+        if "K" in array_names(src / artifacts.VIEWS):
+            K = artifacts.load_views_arrays(src, ["K"])["K"].astype(np.float64)
         else:
             ctx.log.warning("ingest has no intrinsics K: verifying with the fundamental matrix (no relative poses)")
     geometry = "essential" if K is not None else "fundamental"

@@ -36,7 +36,7 @@ import numpy as np
 
 from manifoldneus import artifacts, sfm
 from manifoldneus.config import ParamError, param
-from manifoldneus.io import load_arrays, load_json, native_output_to
+from manifoldneus.io import native_output_to
 
 
 @dataclass
@@ -189,9 +189,9 @@ def run(ctx) -> None:
 
     p: Params = ctx.params
     src = Path(ctx.input("ingest"))
-    meta = load_json(src / "views.json")
+    meta = artifacts.load_views_meta(src)
     names = list(meta["names"])
-    arrays = load_arrays(src / "views.zarr", ["images", "K"])
+    arrays = artifacts.load_views_arrays(src, ["images", "K"])
     files = [f"{Path(nm).stem if Path(nm).suffix else nm}.png" for nm in names]
     intrinsics = sfm.intrinsics_mode(p.intrinsics, meta.get("intrinsics_source", "calibrated"))
     if len(set(files)) != len(files):

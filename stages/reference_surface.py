@@ -40,7 +40,7 @@ def input_signature(scene, p) -> str:
 
 
 def run(ctx) -> None:
-    gt_meta = io.load_json(ctx.input("ground_truth") / "gt.json")
+    gt_meta = artifacts.load_gt_meta(ctx.input("ground_truth"))
     if not ctx.params.enabled or not gt_meta["has_poses"]:
         why = "disabled" if not ctx.params.enabled else "the scene has no ground-truth poses"
         ctx.log.info("no reference surface: %s", why)

@@ -134,7 +134,7 @@ MIN_ANCHORS = 2  # the anchors' initialisation from matches needs a pair
 
 def run(ctx) -> None:
     p = ctx.params
-    meta = io.load_json(ctx.input("ingest") / "views.json")
+    meta = artifacts.load_views_meta(ctx.input("ingest"))
     names = meta["names"]
     cov = artifacts.load_covisibility(ctx.input("covisibility"), ["W", "c"])
     W = np.asarray(cov["W"], np.float64)

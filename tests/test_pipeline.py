@@ -576,6 +576,22 @@ def test_imports_point_one_way():
             assert not [n for n in names if n.split(".")[0] in forbidden], (path, sorted(names))
 
 
+def test_shared_artifacts_are_named_by_their_readers_only():
+    """The files several stages read are named in manifoldneus/artifacts.py only (its constants and
+    readers, as hloc's one io module): no other module of the package, stage, runner or bench spells
+    their names, so renaming one is a one-line change and no second reader can drift from the first."""
+    from manifoldneus import artifacts
+
+    names = [artifacts.VIEWS, artifacts.VIEWS_META, artifacts.GT_META, artifacts.INITIAL_POSES, artifacts.COVISIBILITY,
+             artifacts.POSES]
+    for package in ("manifoldneus", "stages", "runner", "bench"):
+        for path in sorted((pipeline.ROOT / package).glob("*.py")):
+            if path.name == "artifacts.py":
+                continue
+            text = path.read_text()
+            assert not [n for n in names if f'"{n}"' in text or f"'{n}'" in text], path
+
+
 @pytest.mark.parametrize("text, message", [
     ("run:\n\tseed: 1\n", r"params.yaml, line 2: not valid YAML .*indent with spaces, not tabs"),
     ("run: [1, 2\n", r"params.yaml, line \d: not valid YAML"),
