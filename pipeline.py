@@ -2,7 +2,7 @@
 """manifoldneus pipeline: a cached DAG of stages, each writing a versioned artifact (the runner: runner/).
 
     python pipeline.py run --scene S [--until STAGE | --only STAGE] [--set sec.key=value ...]
-                           [--force STAGE] [--profile fast|paper] [--preset NAME]
+                           [--force STAGE] [--profile fast|quick|paper] [--preset NAME]
     python pipeline.py status --scene S
     python pipeline.py show --scene S STAGE
     python pipeline.py params-diff --scene S STAGE
@@ -60,7 +60,7 @@ def _parser() -> argparse.ArgumentParser:
             sp.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                             help="override one parameter for this command (repeat it for several); "
                                  "docs/USAGE.md and `pipeline.py params-diff STAGE` name the keys")
-            sp.add_argument("--profile", default=None, help="fast | paper (default: params.yaml's `profile`)")
+            sp.add_argument("--profile", default=None, help="fast | quick | paper (default: params.yaml's `profile`)")
             sp.add_argument("--preset", default=None, help="a named preset from params.yaml (e.g. neus-barf); "
                                                            "its versions keep their own `current@PRESET` pointers")
 

@@ -39,6 +39,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import pipeline  # noqa: E402
+from manifoldneus.artifacts import load_evaluation  # noqa: E402
 from manifoldneus import io  # noqa: E402
 from runner import executor  # noqa: E402
 
@@ -156,7 +157,7 @@ def pose_errors(summary: dict) -> dict:
 
 def neural_scores(evaluate_dir: Path, units: str | None) -> dict:
     """Final-round pose errors, Chamfer and held-out novel views from `evaluation.json`."""
-    ev = io.load_json(evaluate_dir / "evaluation.json")
+    ev = load_evaluation(evaluate_dir)
     final = (ev.get("poses") or [{}])[-1]
     if "summary" not in final:  # no rounds, or a final round of < 3 views (not scored)
         return {}

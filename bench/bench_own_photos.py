@@ -27,9 +27,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import pipeline  # noqa: E402
+from manifoldneus.artifacts import load_evaluation  # noqa: E402
 from bench import bench  # noqa: E402
 from bench.bench_refine import git_commit, spread  # noqa: E402
-from manifoldneus import io  # noqa: E402
 
 SYSTEMS = {
     "calibrated-masked": [],
@@ -43,7 +43,7 @@ def one_run(scene: str, system: str, seed: int, overrides: list[str], artifacts:
     t0 = time.time()
     pipeline.run(scene, overrides=over, artifacts=artifacts)
     store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
-    ev = io.load_json(store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json")
+    ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
     final = ev["poses"][-1]["summary"]
     ref = bench.reference_scores(store.version_dir("evaluate_poses", store.current("evaluate_poses")))
     return {"system": system, "seed": seed, "overrides": over, "wall_seconds": time.time() - t0,

@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import pipeline  # noqa: E402
+from manifoldneus.artifacts import load_evaluation, load_reference_surface_meta  # noqa: E402
 from bench import bench  # noqa: E402
 from manifoldneus import io  # noqa: E402
 
@@ -61,7 +62,7 @@ def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_r
     over += [f"reference_surface.iters={iters}"] if with_reference else ["reference_surface.enabled=false"]
     pipeline.run(scene, overrides=over, artifacts=artifacts)
     rows = bench.collect(scene, artifacts, None, TIMED)
-    ev = io.load_json(store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json")
+    ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
     out = {"seed": seed, "overrides": over, "rounds_iters": iters, "wall_seconds_sitting": time.time() - t0,
            "stage_seconds": {s: r["wall_seconds"] for s, r in rows.items()}}
     if not ev.get("poses"):
@@ -94,7 +95,7 @@ def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_r
     out["psnr_masked"] = nvs.get("psnr_masked", nvs.get("psnr"))
     out["psnr_masked_aligned"] = nvs.get("aligned_psnr_masked", nvs.get("aligned_psnr"))
     if with_reference:
-        refj = io.load_json(store.version_dir("reference_surface", store.current("reference_surface")) / "reference.json")
+        refj = load_reference_surface_meta(store.version_dir("reference_surface", store.current("reference_surface")))
         if refj.get("trained"):
             s = refj["novel_views"]["summary"]
             out["gt_pose_psnr_masked"] = s.get("psnr_masked", s.get("psnr"))
@@ -110,7 +111,7 @@ def sfm_all(scene: str, overrides: list[str], iters: int, artifacts: Path, errs)
     over = [*overrides, f"anchors.iters={iters}", "reference_surface.enabled=false"]
     pipeline.run(scene, overrides=over, artifacts=artifacts, preset="sfm-all")
     store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name, "sfm-all")
-    ev = io.load_json(store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json")
+    ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
     out = {**errs(ev["poses"][-1]["summary"]), "iters": iters}
     if iters > 1:
         nvs = ev.get("novel_views", {}).get("summary", {})

@@ -52,7 +52,7 @@ from scipy.stats import rankdata  # noqa: E402
 
 import pipeline  # noqa: E402
 from manifoldneus import io  # noqa: E402
-from manifoldneus.artifacts import load_gt_meta, load_views_meta  # noqa: E402
+from manifoldneus.artifacts import load_evaluation, load_gt_meta, load_schedule_meta, load_views_meta  # noqa: E402
 from runner import executor  # noqa: E402
 from manifoldneus.config import ParamError  # noqa: E402
 from manifoldneus.scenes import SceneError  # noqa: E402
@@ -308,9 +308,9 @@ def setting_row(setting: Setting, outcome: executor.Outcome, scene: str, artifac
     manifests = upstream_manifests(store, "evaluate", outcome.report.fingerprints["evaluate"])
     versions = {name: store.version_dir(name, m["fingerprint"]) for name, m in manifests.items()}
     gt = load_gt_meta(versions["ground_truth"])
-    schedule = io.load_json(versions["schedule"] / "schedule.json")
+    schedule = load_schedule_meta(versions["schedule"])
     views = load_views_meta(versions["ingest"])
-    rounds = _round_errors(io.load_json(versions["evaluate"] / "evaluation.json"))
+    rounds = _round_errors(load_evaluation(versions["evaluate"]))
     by_label = {r["label"]: r for r in rounds}
     return {
         "value": setting.value, "label": setting.label, "overrides": list(setting.overrides),

@@ -15,6 +15,12 @@ from manifoldneus.views import Views
 VIEWS = "views.zarr"  # ingest's arrays: images, K, masks, priors
 VIEWS_META = "views.json"  # ingest's names, layout, intrinsics_source, has_cameras, ...
 GT_META = "gt.json"  # ground_truth's has_poses, has_surface, units
+FEATURES = "features.zarr"
+MATCHES = "matches.zarr"
+SCHEDULE = "schedule.zarr"
+SCHEDULE_META = "schedule.json"
+REFERENCE_SURFACE_META = "reference.json"  # reference_surface's trained / why, its iterations and PSNR
+EVALUATION = "evaluation.json"
 INITIAL_POSES = "initial_poses.zarr"
 COVISIBILITY = "covisibility.zarr"
 POSES = "poses.zarr"  # the same name in reference, ground_truth, mesh and every pose-free round
@@ -51,12 +57,12 @@ def load_views(ingest_dir: Path, w2c: np.ndarray | None = None, K: np.ndarray | 
                  arrays.get("mono_normal"), names).undistorted(distortion)
 
 
-
-def load_features(path: Path) -> tuple[list[dict], dict]:
-    """``features.zarr`` -> (per-view dicts of keypoints [K,2] px, scales, orientations, responses,
-    descriptors; attrs with ``featureless`` [N])."""
-    arrays = io.load_arrays(Path(path))
-    attrs = io.load_attrs(Path(path))
+def load_features(features_dir: Path) -> tuple[list[dict], dict]:
+    """``features``' ``features.zarr`` -> (per-view dicts of keypoints [K,2] px, scales, orientations,
+    responses, descriptors; attrs with ``featureless`` [N])."""
+    path = Path(features_dir) / FEATURES
+    arrays = io.load_arrays(path)
+    attrs = io.load_attrs(path)
     off = arrays["offsets"]
     feats = []
     for v in range(len(off) - 1):
@@ -66,9 +72,11 @@ def load_features(path: Path) -> tuple[list[dict], dict]:
     return feats, attrs
 
 
-def load_matches(path: Path) -> tuple[dict, dict]:
-    """``matches.zarr`` -> (arrays, attrs). Per pair p: :func:`inliers_of` (arrays, p)."""
-    return io.load_arrays(Path(path)), io.load_attrs(Path(path))
+def load_matches(matching_dir: Path, names: list[str] | None = None) -> tuple[dict, dict]:
+    """``matching``'s ``matches.zarr`` -> (arrays (all, or ``names``), attrs). Per pair p:
+    :func:`inliers_of` (arrays, p)."""
+    path = Path(matching_dir) / MATCHES
+    return io.load_arrays(path, names), io.load_attrs(path)
 
 
 def inliers_of(arrays: dict, p: int) -> np.ndarray:
@@ -79,9 +87,24 @@ def inliers_of(arrays: dict, p: int) -> np.ndarray:
 
 def load_schedule(schedule_dir: Path) -> dict:
     """The arrays of ``schedule.zarr`` plus ``schedule.json`` under 'meta'."""
-    out = io.load_arrays(Path(schedule_dir) / "schedule.zarr")
-    out["meta"] = io.load_json(Path(schedule_dir) / "schedule.json")
+    out = io.load_arrays(Path(schedule_dir) / SCHEDULE)
+    out["meta"] = load_schedule_meta(schedule_dir)
     return out
+
+
+def load_schedule_meta(schedule_dir: Path) -> dict:
+    """``schedule``'s ``schedule.json``: the anchors and rounds by name, held-out views, settings."""
+    return io.load_json(Path(schedule_dir) / SCHEDULE_META)
+
+
+def load_evaluation(evaluate_dir: Path) -> dict:
+    """``evaluate``'s ``evaluation.json``: poses per round, intrinsics, geometry, novel views."""
+    return io.load_json(Path(evaluate_dir) / EVALUATION)
+
+
+def load_reference_surface_meta(reference_surface_dir: Path) -> dict:
+    """``reference_surface``'s ``reference.json``: whether the GT-pose NeuS was trained (and why not)."""
+    return io.load_json(Path(reference_surface_dir) / REFERENCE_SURFACE_META)
 
 
 def load_round_arrays(round_dir: Path, names: list[str] | None = None) -> dict:

@@ -102,8 +102,8 @@ def load_inputs(ingest: Path, features: Path, matching: Path, covisibility: Path
     views = artifacts.load_views(ingest)  # identity placeholders for the poses
     meta = artifacts.load_views_meta(ingest)
     n = views.n
-    feats, _ = artifacts.load_features(features / "features.zarr")
-    matches, _ = artifacts.load_matches(matching / "matches.zarr")
+    feats, _ = artifacts.load_features(features)
+    matches, _ = artifacts.load_matches(matching)
     W = artifacts.load_covisibility(covisibility, ["W"])["W"].astype(np.float64)
     schedule = artifacts.load_schedule(schedule)
     held_out = np.isin(np.arange(n), schedule["meta"]["held_out_views"])  # the schedule decided them

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, cameras, export, io, meshing
+from manifoldneus import artifacts, cameras, export, meshing
 
 ASSETS = Path(__file__).with_name("viewer_assets")
 MAX_FACES = 200_000  # what a browser turns smoothly on a laptop; larger meshes are decimated to it
@@ -114,7 +114,7 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
     names, width, height = views_meta["names"], views_meta["width"], views_meta["height"]
     K = artifacts.load_round_arrays(versions["successors"] / "final", ["K"])["K"]  # the intrinsics the poses belong to
     n = len(names)
-    schedule = io.load_json(versions["schedule"] / "schedule.json")
+    schedule = artifacts.load_schedule_meta(versions["schedule"])
     held_out = np.zeros(n, bool)
     held_out[schedule["held_out_views"]] = True
     world_from_model = export.read_frame(versions["export"] / export.FRAME)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from manifoldneus.artifacts import load_evaluation, load_schedule_meta  # `artifacts` is the folder here
 from manifoldneus.scenes import resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, DEFAULT_PARAMS, PipelineError
 from runner.execute import RunReport, _refuse_damaged, cli_hint
@@ -32,7 +33,7 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
         out += posed_lines(store.version_dir("successors", version["successors"]),
                            store.version_dir("schedule", version["schedule"]))
     if "evaluate" in report:
-        ev = json.loads((store.version_dir("evaluate", version["evaluate"]) / "evaluation.json").read_text())
+        ev = load_evaluation(store.version_dir("evaluate", version["evaluate"]))
         if ev.get("poses"):
             final = ev["poses"][-1]
             rot, centre = final["summary"]["rot_err_deg"], final["summary"].get("center_err_units", {})
@@ -70,9 +71,9 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
 
 def posed_lines(successors_dir: Path, schedule_dir: Path) -> list[str]:
     """How many of the views meant to get a pose got one; a warning naming those that did not."""
-    from manifoldneus import artifacts, io
+    from manifoldneus import artifacts
 
-    schedule = io.load_json(schedule_dir / "schedule.json")
+    schedule = load_schedule_meta(schedule_dir)
     placed = artifacts.load_round_arrays(successors_dir / "final", ["placed"])["placed"].astype(bool)
     held = set(schedule["held_out_views"])
     meant = [v for v in schedule["views"] if v["view"] not in held]  # those outside the largest component too

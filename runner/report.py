@@ -501,7 +501,7 @@ def section_heldout(page: Page, systems: dict[str, Pointers]) -> None:
     for name, ptr in systems.items():
         page.add(f"### {name}", "")
         ev = ptr.get("evaluate")
-        report = io.load_json(ev / "evaluation.json") if ev is not None else {}
+        report = artifacts.load_evaluation(ev) if ev is not None else {}
         nvs = report.get("novel_views")
         if not nvs:
             page.missing(f"{name} held-out renderings", "stage evaluate")

@@ -23,7 +23,7 @@ import numpy as np
 
 from manifoldneus import artifacts, mavos
 from manifoldneus.config import param
-from manifoldneus.io import load_arrays, load_attrs, save_figure, save_json
+from manifoldneus.io import save_figure, save_json
 
 
 @dataclass
@@ -118,9 +118,7 @@ def plot_graph(W: np.ndarray, names: list[str], pos: np.ndarray, labels: np.ndar
 
 def run(ctx) -> None:
     p: Params = ctx.params
-    mpath = Path(ctx.input("matching")) / "matches.zarr"
-    arrays = load_arrays(mpath, ["pairs", "n_inliers"])
-    attrs = load_attrs(mpath)
+    arrays, attrs = artifacts.load_matches(ctx.input("matching"), ["pairs", "n_inliers"])
     names = list(attrs["names"])
     n = len(names)
 

@@ -31,7 +31,7 @@ class Params:
 
 UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "mesh", "reference_surface")
 SECTIONS = ("evaluate", "run.device", "split", "novel_views")
-OUTPUTS = ("evaluation.json", "pose_error_rounds.png")
+OUTPUTS = (artifacts.EVALUATION, "pose_error_rounds.png")
 
 
 def input_signature(scene, p) -> str:
@@ -116,7 +116,7 @@ def run(ctx) -> None:
     report: dict = {"label": ctx.scene}
     if not gt_meta["has_poses"]:
         ctx.log.warning("no ground truth: nothing to evaluate against")
-        io.save_json(ctx.out / "evaluation.json", {"has_ground_truth": False})
+        io.save_json(ctx.out / artifacts.EVALUATION, {"has_ground_truth": False})
         io.save_png(ctx.out / "pose_error_rounds.png", np.zeros((8, 8, 3)))
         return
     gt = artifacts.load_ground_truth_poses(ctx.input("ground_truth"))
@@ -157,7 +157,7 @@ def run(ctx) -> None:
     plot_rounds([r for r in rows if "summary" in r], ctx.out / "pose_error_rounds.png", gt_meta["units"])
     if final_res is None or "summary" not in rows[-1]:
         ctx.log.warning("the final round could not be scored: no geometry or novel-view evaluation")
-        io.save_json(ctx.out / "evaluation.json", report)
+        io.save_json(ctx.out / artifacts.EVALUATION, report)
         return
     pose_metrics.plot_cameras(final_res["w2c_aligned"], gt["w2c"], ctx.out / "cameras.png", valid=final_res["valid"],
                               held_out=holdout_mask(len(names), ctx.section("split")),
@@ -179,7 +179,7 @@ def run(ctx) -> None:
         ref_label = "exact surface (observed part)"
         diag = float(np.linalg.norm(np.subtract(*synthetic.bounding_box()[::-1])))
     else:
-        ref_meta = io.load_json(ctx.input("reference_surface") / "reference.json")
+        ref_meta = artifacts.load_reference_surface_meta(ctx.input("reference_surface"))
         if ref_meta.get("trained"):
             ref_mesh = meshing.load_mesh(ctx.input("reference_surface") / "mesh.ply")
             ref_pts = metrics.sample_surface(ref_mesh, p.chamfer_points)
@@ -204,7 +204,7 @@ def run(ctx) -> None:
             views = dataclasses.replace(views, masks=gt["masks"])
         report["novel_views"] = evaluation.novel_views(trainer, views, held, test_w2c, ctx.out / "novel_views",
                                                        ctx.progress, align=ctx.section("novel_views"))
-    io.save_json(ctx.out / "evaluation.json", report)
+    io.save_json(ctx.out / artifacts.EVALUATION, report)
     fin = rows[-1]["summary"]
     ctx.metrics.update(
         rot_err_deg_mean=fin["rot_err_deg"]["mean"], center_err_units_mean=fin["center_err_units"]["mean"],

@@ -54,7 +54,7 @@ class Params:
 
 UPSTREAM = ("ingest",)
 SECTIONS = ("features",)
-OUTPUTS = ("features.zarr",)
+OUTPUTS = (artifacts.FEATURES,)
 
 
 # --------------------------------------------------------------------------- plain functions
@@ -215,7 +215,7 @@ def run(ctx) -> None:
     packed = pack_features(feats)
     packed["featureless"] = featureless
     save_arrays(
-        Path(ctx.out) / "features.zarr",
+        Path(ctx.out) / artifacts.FEATURES,
         packed,
         attrs={
             "names": names,

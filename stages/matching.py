@@ -94,7 +94,7 @@ class Params:
 
 UPSTREAM = ("ingest", "features")
 SECTIONS = ("matching",)
-OUTPUTS = ("matches.zarr",)
+OUTPUTS = (artifacts.MATCHES,)
 
 
 def input_signature(scene, p: Params) -> str | None:
@@ -338,7 +338,7 @@ def run(ctx) -> None:
     src = Path(ctx.input("ingest"))
     meta = artifacts.load_views_meta(src)
     names = list(meta["names"])
-    fa = load_arrays(Path(ctx.input("features")) / "features.zarr", ["offsets", "keypoints", "descriptors"])
+    fa = load_arrays(Path(ctx.input("features")) / artifacts.FEATURES, ["offsets", "keypoints", "descriptors"])
     off = fa["offsets"]
     feats = [
         {"keypoints": fa["keypoints"][off[v] : off[v + 1]], "descriptors": fa["descriptors"][off[v] : off[v + 1]]}
@@ -383,7 +383,7 @@ def run(ctx) -> None:
     seconds = time.perf_counter() - t0
 
     save_arrays(
-        Path(ctx.out) / "matches.zarr",
+        Path(ctx.out) / artifacts.MATCHES,
         res,
         attrs={
             "names": names,

@@ -31,7 +31,7 @@ UPSTREAM = ("ingest", "ground_truth")
 SECTIONS = ("reference_surface", "train", "field", "render", "loss", "run", "split", "novel_views",
             *(f"meshing.{k}" for k in ("resolution", "keep_components", "drop_sphere_closure", "cull_by_masks",
                                        "cull_dilation", "cull_unseen", "visibility_size", "preview_size")))
-OUTPUTS = ("reference.json",)
+OUTPUTS = (artifacts.REFERENCE_SURFACE_META,)
 
 
 def input_signature(scene, p) -> str:
@@ -44,7 +44,7 @@ def run(ctx) -> None:
     if not ctx.params.enabled or not gt_meta["has_poses"]:
         why = "disabled" if not ctx.params.enabled else "the scene has no ground-truth poses"
         ctx.log.info("no reference surface: %s", why)
-        io.save_json(ctx.out / "reference.json", {"trained": False, "why": why})
+        io.save_json(ctx.out / artifacts.REFERENCE_SURFACE_META, {"trained": False, "why": why})
         return
     # ground truth through and through: the layout's poses, calibration and masks (when the method runs without)
     gt = artifacts.load_ground_truth_poses(ctx.input("ground_truth"))
@@ -77,7 +77,7 @@ def run(ctx) -> None:
     nvs = evaluation.novel_views(trainer, views, np.flatnonzero(held), w2c, ctx.out / "novel_views", ctx.progress,
                                  align=ctx.section("novel_views"))
     rays = summary["steps"] * tp.batch_rays
-    io.save_json(ctx.out / "reference.json", {
+    io.save_json(ctx.out / artifacts.REFERENCE_SURFACE_META, {
         "trained": True, "label": "reference: trained with GROUND-TRUTH poses", "train": summary,
         "history": trainer.history, "novel_views": nvs, "train_seconds": seconds,
         "rays_per_second": rays / max(seconds, 1e-9), "mesh_faces": int(len(mesh.faces))})

@@ -50,7 +50,7 @@ class Params:
 
 UPSTREAM = ("ingest", "covisibility", "spectral")
 SECTIONS = ("schedule", "split")
-OUTPUTS = ("schedule.zarr", "schedule.json", "schedule.png")
+OUTPUTS = (artifacts.SCHEDULE, artifacts.SCHEDULE_META, "schedule.png")
 
 ROUND_COLOURS = ["#8c510a", "#1b9e77", "#969696", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d"]
 
@@ -178,7 +178,7 @@ def run(ctx) -> None:
                  len(anchors), "one connected cluster" if connected else f"{n_clusters} clusters", bottleneck,
                  [len(r) for r in rounds])
 
-    io.save_arrays(ctx.out / "schedule.zarr", {
+    io.save_arrays(ctx.out / artifacts.SCHEDULE, {
         "round": sched.round, "order": sched.order, "S": sched.S, "L": sched.L, "C": sched.C,
         "L_raw": sched.L_raw, "C_raw": sched.C_raw, "s_tilde": sched.s_tilde,
         "s_tilde_rounds": sched.s_tilde_rounds, "optimised": sched.optimised, "schedulable": sched.schedulable,
@@ -190,7 +190,7 @@ def run(ctx) -> None:
         "L_raw": float(sched.L_raw[i]), "C_raw": float(sched.C_raw[i]), "s_tilde": float(sched.s_tilde[i]),
         "c": float(c[i]),
     } for i in range(N)]
-    io.save_json(ctx.out / "schedule.json", {
+    io.save_json(ctx.out / artifacts.SCHEDULE_META, {
         "settings": sched.settings,
         "n_views": N,
         "n_rounds": sched.n_rounds,

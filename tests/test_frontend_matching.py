@@ -282,14 +282,14 @@ def test_stage_chain_with_featureless_view(tmp_path, caplog):
     ctx = FakeCtx(features, tmp_path / "features", {"ingest": ingest})
     features.run(ctx)
     assert any("blank" in r.message and "featureless" in r.message for r in caplog.records if r.levelno == logging.WARNING)
-    feats, attrs = artifacts.load_features(ctx.out / "features.zarr")
+    feats, attrs = artifacts.load_features(ctx.out)
     assert attrs["names"] == names and list(attrs["featureless"]) == [False, False, False, True]
     assert len(feats[3]["keypoints"]) == 0 and all(len(f["keypoints"]) > 200 for f in feats[:3])
     assert ctx.metrics["n_featureless"] == 1
 
     mctx = FakeCtx(matching, tmp_path / "matching", {"ingest": ingest, "features": ctx.out})
     matching.run(mctx)
-    arrays, mattrs = artifacts.load_matches(mctx.out / "matches.zarr")
+    arrays, mattrs = artifacts.load_matches(mctx.out)
     assert mattrs["geometry"] == "essential" and len(arrays["pairs"]) == 6
     with_blank = (arrays["pairs"] == 3).any(1)
     assert (arrays["n_inliers"][with_blank] == 0).all() and (arrays["n_raw"][with_blank] == 0).all()

@@ -192,6 +192,22 @@ def test_unknown_stage_and_profile(artifacts):
         pipeline.run("synthetic", until="ingest", profile="turbo", artifacts=artifacts)
 
 
+def test_the_quick_profile_is_fast_at_half_the_iterations_keeping_the_bands():
+    """params.yaml's profiles resolve; `quick` differs from `fast` in the neural stages' lengths (halved)
+    and successors.regate_kept only, so its figures (docs/REFINEMENT.md) compare with fast's."""
+    stages = pipeline.load_stages()
+    fast, quick = (pipeline.resolve_params(stages, profile=name) for name in ("fast", "quick"))
+    pipeline.resolve_params(stages, profile="paper")
+    lengths = [("anchors", "iters"), ("successors", "iters"), ("successors", "final_iters"),
+               ("reference_surface", "iters")]
+    for section, key in lengths:
+        assert 2 * getattr(quick[section], key) == getattr(fast[section], key), (section, key)
+    assert (fast["successors"].regate_kept, quick["successors"].regate_kept) == (0.0, 1.0)
+    differ = {(name, key) for name in fast if not name.startswith("_")
+              for key in vars(fast[name]) if getattr(fast[name], key) != getattr(quick[name], key)}
+    assert differ == {*lengths, ("successors", "regate_kept")}, differ
+
+
 def test_unknown_params_yaml_section(tmp_path, artifacts):
     bad = tmp_path / "params.yaml"
     bad.write_text("profile: fast\nprofiles: {fast: {}}\ningestt: {downscale: 2}\n")
@@ -582,8 +598,9 @@ def test_shared_artifacts_are_named_by_their_readers_only():
     their names, so renaming one is a one-line change and no second reader can drift from the first."""
     from manifoldneus import artifacts
 
-    names = [artifacts.VIEWS, artifacts.VIEWS_META, artifacts.GT_META, artifacts.INITIAL_POSES, artifacts.COVISIBILITY,
-             artifacts.POSES]
+    names = [artifacts.VIEWS, artifacts.VIEWS_META, artifacts.GT_META, artifacts.FEATURES, artifacts.MATCHES,
+             artifacts.COVISIBILITY, artifacts.SCHEDULE, artifacts.SCHEDULE_META, artifacts.INITIAL_POSES, artifacts.POSES,
+             artifacts.REFERENCE_SURFACE_META, artifacts.EVALUATION]
     for package in ("manifoldneus", "stages", "runner", "bench"):
         for path in sorted((pipeline.ROOT / package).glob("*.py")):
             if path.name == "artifacts.py":

@@ -25,8 +25,8 @@ def version(root, stage):
 
 def outputs(root) -> dict:
     """What each stage up to the successors wrote that later stages read."""
-    feats, _ = readers.load_features(version(root, "features") / "features.zarr")
-    matches, _ = readers.load_matches(version(root, "matching") / "matches.zarr")
+    feats, _ = readers.load_features(version(root, "features"))
+    matches, _ = readers.load_matches(version(root, "matching"))
     out = {"keypoints": [f["keypoints"] for f in feats], "matches": [matches[k] for k in sorted(matches)],
            "reference": io.load_arrays(version(root, "reference") / "poses.zarr")["w2c"],
            "schedule": readers.load_schedule(version(root, "schedule"))["round"]}
