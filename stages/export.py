@@ -125,7 +125,7 @@ def run(ctx) -> None:
                              points=points, colours=colours)
     mask_dir = "masks" if p.images and views.masks is not None else None
     export.write_transforms_json(ctx.out / export.TRANSFORMS, views.names, views.K, w2c_world, w, h, valid=exported,
-                                 mask_dir=mask_dir, ply_file_path=ply, test=held)
+                                 mask_dir=mask_dir, ply_file_path=ply, test=held if held.any() else None)
     if p.images:
         for folder, stack in (("images", views.images), (mask_dir, views.masks)):
             if folder is None:
