@@ -108,7 +108,7 @@ def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, wid
     +0.5, as COLMAP and nerfstudio) at the top level when every view shares them, else per frame;
     ``ply_file_path`` (relative) names the initial point cloud. ``test`` (bool [N]): views of nerfstudio's
     test and validation split (``test_filenames``, ``val_filenames``; the other valid views are
-    ``train_filenames``); None: no split is written. Returns what it wrote."""
+    ``train_filenames``); None or none of them: no split is written. Returns what it wrote."""
     valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
     c2w = cameras.opengl_c2w(w2c)  # [N,4,4]
 
@@ -128,7 +128,7 @@ def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, wid
     if ply_file_path is not None:
         out["ply_file_path"] = ply_file_path
     out["frames"] = frames
-    if test is not None:
+    if test is not None and np.any(test):
         test = np.asarray(test, bool)[np.flatnonzero(valid)]
         split = {"train": [f["file_path"] for f, t in zip(frames, test) if not t],
                  "val": [f["file_path"] for f, t in zip(frames, test) if t]}

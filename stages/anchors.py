@@ -171,10 +171,7 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
     row = {v: k for k, v in enumerate(ids)}
     w2c[anchors] = res.w2c[[row[a] for a in anchors]]
     if res.diagnostics["refine_intrinsics"] and res.placed.any():
-        placed = [ids[k] for k in np.flatnonzero(res.placed)]
-        K = sfm.shared_K(inputs.views.K, inputs.sizes, placed, res.K[res.placed])
-        distortion = sfm.shared_K(inputs.views.K, inputs.sizes, placed, res.distortion[res.placed],
-                                  values=np.zeros((n, 4)))
+        K, distortion = estimated_intrinsics(inputs, res)
         log_refined(ctx, res.diagnostics["refine_intrinsics"], inputs.views.K[anchors[0]], K[anchors[0]],
                     distortion[anchors[0]], "anchors")
         inputs = posefree.with_intrinsics(inputs, K, distortion)
@@ -225,6 +222,16 @@ def lines_of_sight(ctx, res: pose_init.InitResult, calibration: pose_init.InitRe
     return lines
 
 
+def estimated_intrinsics(inputs: posefree.SceneInputs, res: pose_init.InitResult) -> tuple[np.ndarray, np.ndarray]:
+    """(K [N,3,3], lens distortion [N,4]) of every view: what the reconstruction ``res`` estimated for its
+    placed views, given to every view of the same camera (:func:`manifoldneus.sfm.shared_K`)."""
+    placed = [res.view_ids[k] for k in np.flatnonzero(res.placed)]
+    K = sfm.shared_K(inputs.views.K, inputs.sizes, placed, res.K[res.placed])
+    distortion = sfm.shared_K(inputs.views.K, inputs.sizes, placed, res.distortion[res.placed],
+                              values=np.zeros((len(K), 4)))
+    return K, distortion
+
+
 def log_refined(ctx, refine, K_before: np.ndarray, K_after: np.ndarray, distortion: np.ndarray, views: str) -> None:
     ctx.log.info("intrinsics refined (%s) on the %s: focal %.1f -> %.1f px, principal point (%.1f, %.1f) -> "
                  "(%.1f, %.1f), radial distortion k1 %.4g", ", ".join(refine), views, K_before[0, 0], K_after[0, 0],
@@ -261,9 +268,7 @@ def self_calibrate(ctx, inputs: posefree.SceneInputs, refine, p: Params
     if len(placed) == 0:
         ctx.log.warning("self-calibration registered no view; the intrinsics stay as the ingest gave them")
         return inputs.views.K, None, {"views": len(ids), "registered": 0}, None
-    K = sfm.shared_K(inputs.views.K, inputs.sizes, [ids[k] for k in placed], res.K[placed])
-    distortion = sfm.shared_K(inputs.views.K, inputs.sizes, [ids[k] for k in placed], res.distortion[placed],
-                              values=np.zeros((len(K), 4)))
+    K, distortion = estimated_intrinsics(inputs, res)
     first = ids[placed[0]]
     log_refined(ctx, refine, inputs.views.K[first], K[first], distortion[first], f"{len(placed)}/{len(ids)} trainable views")
     return K, distortion, {"views": len(ids), "registered": int(len(placed)), "refine": list(refine),

@@ -90,7 +90,7 @@ def run(ctx) -> None:
     ctx.log.info("exports in the %s frame (%s): %s", frame, units, how)
     s, R, t = cameras.sim3_from_matrix(M)
     w2c_world = rigid(cameras.transform_w2c(w2c, s, R, t))  # [N,4,4]
-    held = np.isin(np.arange(len(w2c)), artifacts.load_schedule(ctx.input("schedule"))["meta"]["held_out_views"])
+    held = np.isin(np.arange(len(w2c)), artifacts.load_schedule_meta(ctx.input("schedule"))["held_out_views"])
     held &= ~placed & (frame == "input")  # the input's own cameras place them in its frame only
     if held.any():
         gt = artifacts.load_ground_truth_poses(ctx.input("ground_truth"), ["w2c", "normalization"])
@@ -125,7 +125,7 @@ def run(ctx) -> None:
                              points=points, colours=colours)
     mask_dir = "masks" if p.images and views.masks is not None else None
     export.write_transforms_json(ctx.out / export.TRANSFORMS, views.names, views.K, w2c_world, w, h, valid=exported,
-                                 mask_dir=mask_dir, ply_file_path=ply, test=held if held.any() else None)
+                                 mask_dir=mask_dir, ply_file_path=ply, test=held)
     if p.images:
         for folder, stack in (("images", views.images), (mask_dir, views.masks)):
             if folder is None:
