@@ -38,8 +38,9 @@ test: setup
 
 # the bench (scan24 unless SCENE or SCENES is given), then README's Results regenerated from the latest bench JSON of each scene
 BENCH_SCENES = $(if $(filter command line,$(origin SCENES)),$(SCENES),$(if $(filter command line,$(origin SCENE)),$(SCENE),scan24))
+SEEDS ?= 0,1,2
 bench: setup
-	$(PY) bench/bench.py $(foreach s,$(BENCH_SCENES),--scene $(s)) $(ARGS)
+	$(PY) bench/bench.py $(foreach s,$(BENCH_SCENES),--scene $(s)) --seeds $(SEEDS) $(ARGS)
 	$(PY) bench/results_md.py
 
 # do the joint rounds refine their initialisation? synthetic, scan24, scan24_idr x 3 seeds (README: "Refinement")

@@ -1,12 +1,17 @@
 #!/usr/bin/env python
 """Benchmark: ManifoldNeuS, its NeuS baselines and the pycolmap reference on one scene, in one sitting.
 
-    python bench/bench.py --scene scan24 [--scene S ...] [--systems manifoldneus,neus-barf,neus-colmap,sfm-all,pycolmap]
+    python bench/bench.py --scene scan24 [--scene S ...] [--seeds 0,1,2]
+                          [--systems manifoldneus,neus-barf,neus-colmap,sfm-all,photos-alone,pycolmap]
                           [--set section.key=value ...] [--until STAGE] [--force STAGE | --force-all]
                           [--artifacts DIR] [--out-dir DIR] [--executor dask|dask://HOST:PORT|slurm] [--workers N]
 
 A system is a pipeline preset (ManifoldNeuS: the default parameters) plus the stages it is charged
-with. Each scene and preset is one run: by default in this process, one after the other; with
+with; `photos-alone` is ManifoldNeuS on the images alone (the layout's intrinsics and masks dropped,
+as on a user's own photos). With several `--seeds` (``run.seed``) every system runs once per seed and
+each figure is the mean with its spread (std, ddof 1) beside it; the JSON keeps every seed's results
+(``per_seed``). The GT-pose reference surface, the yardstick of Chamfer, has a seed of its own
+(`reference_surface.seed`): one reference for all seeds. Each scene and preset is one run: by default in this process, one after the other; with
 ``--executor`` side by side on Dask workers (runner/executor.py). Versions are shared by
 fingerprint, so a stage common to several systems (ingest, the front-end, the reference) is
 computed once, before the runs fan out, and the wall time in its manifest is counted for each
@@ -62,6 +67,7 @@ SYSTEMS = {s.key: s for s in (
     System("neus-barf", "NeuS-BARF", "neus-barf", "evaluate"),
     System("neus-colmap", "NeuS-COLMAP", "neus-colmap", "evaluate"),
     System("sfm-all", "SfM-all + NeuS", "sfm-all", "evaluate"),
+    System("photos-alone", "ManifoldNeuS, photos alone", "photos-alone", "evaluate"),
     System(BASELINE, "pycolmap", None, "evaluate_poses"),
 )}
 
@@ -269,30 +275,89 @@ def machine() -> dict:
             "load_average_at_start": [round(x, 2) for x in os.getloadavg()]}
 
 
+def scene_results(scene: str, scene_runs: list[Run], systems: list[System], artifacts: Path) -> dict[str, dict]:
+    """System key -> its JSON-ready result in one seed's runs of a scene."""
+    by_preset = {run.preset: run for run in scene_runs}
+    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
+    out = {s.key: system_result(s, by_preset[s.preset], store) for s in systems}
+    add_ratios(out)
+    return out
+
+
+def git_commit() -> str | None:
+    """The checkout's commit (short), or None outside git."""
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def spread(values) -> dict:
+    """mean, std (ddof 1; 0 for one value), n, min, max of the numbers among `values`."""
+    v = [float(x) for x in values if is_number(x)]
+    if not v:
+        return {"mean": None, "std": None, "n": 0}
+    mean = sum(v) / len(v)
+    std = math.sqrt(sum((x - mean) ** 2 for x in v) / (len(v) - 1)) if len(v) > 1 else 0.0
+    return {"mean": mean, "std": std, "n": len(v), "min": min(v), "max": max(v)}
+
+
+def over_seeds(per_seed: dict[str, dict]) -> dict:
+    """One system's results of several seeds (seed -> result) as one: every number the mean over the
+    seeds, with its `spread` beside it (key -> mean, std, n, min, max); the rest (labels, stages,
+    units) from the first seed; ratios to pycolmap from the means (`add_ratios`)."""
+    first = next(iter(per_seed.values()))
+    numeric = [k for k, v in first.items() if is_number(v)]
+    spreads = {k: spread(r.get(k) for r in per_seed.values()) for k in numeric}
+    errors = [f"seed {seed}: {r['error']}" for seed, r in per_seed.items() if "error" in r]
+    missing = sorted({st for r in per_seed.values() for st in r["missing_stages"]})
+    out = {k: v for k, v in first.items() if k not in ("over_pycolmap", "error")}
+    out.update({k: s["mean"] for k, s in spreads.items()}, spread=spreads, missing_stages=missing)
+    return {**out, **({"error": "; ".join(errors)} if errors else {})}
+
+
 def run_benches(scenes: list[str], systems: list[System], overrides=(), until=None, force=(),
-                artifacts=pipeline.DEFAULT_ARTIFACTS, executor_name: str = "in-process", workers: int | None = None
-                ) -> dict[str, dict]:
-    """Run the systems on every scene; scene -> its JSON-ready result. With several scenes the
-    sitting's total wall time and machine load are the whole sitting's."""
+                artifacts=pipeline.DEFAULT_ARTIFACTS, executor_name: str = "in-process", workers: int | None = None,
+                seeds: list[int] | None = None) -> dict[str, dict]:
+    """Run the systems on every scene, once per seed (``run.seed``; None: the parameters' own); scene
+    -> its JSON-ready result. With several scenes or seeds the sitting's total wall time and machine
+    load are the whole sitting's. `force` applies to the first seed's runs only (the later ones
+    reuse what it recomputed, e.g. the front-end)."""
     started, host = time.time(), machine()
-    runs = run_systems(scenes, systems, list(overrides), until, list(force), artifacts, executor_name, workers)
+    per_seed: dict[str, dict[str, dict]] = {}   # scene -> seed -> system -> result
+    first_runs: dict[str, list[Run]] = {}
+    for i, seed in enumerate(seeds or [None]):
+        over = [*overrides, *([] if seed is None else [f"run.seed={seed}"])]
+        runs = run_systems(scenes, systems, over, until, list(force) if i == 0 else [], artifacts, executor_name,
+                           workers)
+        for scene, scene_runs in runs.items():
+            first_runs.setdefault(scene, scene_runs)
+            per_seed.setdefault(scene, {})[str(seed)] = scene_results(scene, scene_runs, systems, artifacts)
     results = {}
-    for scene, scene_runs in runs.items():
-        by_preset = {run.preset: run for run in scene_runs}
-        store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
-        systems_results = {s.key: system_result(s, by_preset[s.preset], store) for s in systems}
-        add_ratios(systems_results)
+    for scene, by_seed in per_seed.items():
+        if seeds and len(seeds) > 1:
+            systems_results = {s.key: over_seeds({seed: r[s.key] for seed, r in by_seed.items()}) for s in systems}
+            add_ratios(systems_results)
+        else:
+            systems_results = next(iter(by_seed.values()))
         results[scene] = {
             "scene": pipeline.resolve_scene(scene).name,
             "date": dt.datetime.fromtimestamp(started).isoformat(timespec="seconds"),
             "machine": host,
+            "commit": git_commit(),
+            "grid_kernel": grid_kernel_used(),
             "executor": {"name": executor_name, "workers": workers, "scenes": list(scenes)},
             "overrides": list(overrides),
             "until": until,
+            "seeds": list(seeds or []),
             "total_wall_seconds": round(time.time() - started, 1),
             "systems": systems_results,
-            "stages": stage_rows(scene_runs),
-            "summary": summarise(by_preset.get(None, scene_runs[0]).rows),  # MaVOS front-end
+            **({"per_seed": by_seed} if seeds and len(seeds) > 1 else {}),
+            "stages": stage_rows(first_runs[scene]),
+            "summary": summarise({run.preset: run for run in first_runs[scene]}.get(None, first_runs[scene][0]).rows),
         }
     return results
 
@@ -327,6 +392,16 @@ def fmt(v, spec: str = ".3g") -> str:
     return format(v, spec) if is_number(v) else "—"
 
 
+def cell(system: dict, key: str, spec: str = ".3g") -> str:
+    """A system's figure, with ± its spread over seeds (std) where it has one."""
+    s = system.get("spread", {}).get(key)
+    mean = fmt(system.get(key), spec)
+    if not (s and s["n"] > 1 and is_number(system.get(key))):
+        return mean
+    decimals = len(mean.partition(".")[2]) if "e" not in mean else 3  # the std to the mean's last digit
+    return f"{mean} ± {s['std']:.{decimals}f}"
+
+
 def markdown_table(header: list[str], rows: list[list[str]], align: str | None = None) -> str:
     """`align`: one letter per column, l or r (default: the first left, numbers right)."""
     align = align or "l" + "r" * (len(header) - 1)
@@ -344,14 +419,15 @@ def systems_table(result: dict) -> str:
               *(f"{col} ÷ pycolmap" for col, _ in RATIOS)]
     rows = []
     for s in systems.values():
-        views = f"{s['n_valid']}/{s['n_views']}" if "n_valid" in s else "—"
+        views = f"{fmt(s['n_valid'], '.0f')}/{fmt(s['n_views'], '.0f')}" if "n_valid" in s else "—"
         rows.append([
             s["label"], views,
-            f"{fmt(s.get('rot_err_deg_mean'))} / {fmt(s.get('rot_err_deg_median'))}",
-            f"{fmt(s.get('center_err_units_mean'))} / {fmt(s.get('center_err_units_median'))}",
-            fmt(s.get("pre_r_deg_mean")), fmt(s.get("pre_t_deg_mean")), fmt(s.get("chamfer_units")),
-            fmt(s.get("psnr"), ".2f"), fmt(s.get("psnr_aligned"), ".2f"), fmt(s.get("ssim"), ".3f"), *([fmt(s.get("lpips"), ".3f")] if with_lpips else []),
-            fmt(s["wall_seconds"], ".1f"), fmt(s["peak_rss_mib"], ".0f"),
+            f"{cell(s, 'rot_err_deg_mean')} / {cell(s, 'rot_err_deg_median')}",
+            f"{cell(s, 'center_err_units_mean')} / {cell(s, 'center_err_units_median')}",
+            cell(s, "pre_r_deg_mean"), cell(s, "pre_t_deg_mean"), cell(s, "chamfer_units"),
+            cell(s, "psnr", ".2f"), cell(s, "psnr_aligned", ".2f"), cell(s, "ssim", ".3f"),
+            *([cell(s, "lpips", ".3f")] if with_lpips else []),
+            cell(s, "wall_seconds", ".0f"), fmt(s["peak_rss_mib"], ".0f"),
             *(fmt(s["over_pycolmap"][col], ".2f") for col, _ in RATIOS),
         ])
     return markdown_table(header, rows)
@@ -363,8 +439,11 @@ def stage_system_table(result: dict) -> str:
     order = list(pipeline.load_stages())
     stages = sorted({st for s in systems for st in s["stages"]}, key=order.index)
     rows = [[st, *(fmt(s["stages"].get(st, {}).get("wall_seconds"), ".1f") for s in systems)] for st in stages]
-    rows.append(["**total**", *(f"**{fmt(s['wall_seconds'], '.1f')}**" for s in systems)])
-    return markdown_table(["stage (wall s)", *(s["label"] for s in systems)], rows)
+    totals = [sum(st["wall_seconds"] for st in s["stages"].values()) for s in systems]
+    rows.append(["**total**", *(f"**{fmt(total, '.1f')}**" for total in totals)])
+    seeds = result.get("seeds") or []
+    what = f"wall s, seed {seeds[0]}" if len(seeds) > 1 else "wall s"
+    return markdown_table([f"stage ({what})", *(s["label"] for s in systems)], rows)
 
 
 def notes(result: dict) -> list[str]:
@@ -375,7 +454,10 @@ def notes(result: dict) -> list[str]:
     sitting = ("All of them are of this sitting." if fresh == len(charged) else
                f"{fresh} of the {len(charged)} are of this sitting, the others of the run that first computed the "
                "cached version (`--force-all` for a fresh sitting).")
-    out = [
+    seeds = result.get("seeds") or []
+    out = [f"Mean ± std over the seeds {', '.join(map(str, seeds))} (`run.seed`; std with ddof 1); the ratios are "
+           "of the means. Per seed: `per_seed` in the JSON."] if len(seeds) > 1 else []
+    out += [
         "Times: sum of the wall times recorded in the manifests of the stages charged to each system (stage "
         "table). Versions shared between systems (ingest, the front-end, the pycolmap reference) are computed "
         f"once and counted for every system that uses them; evaluation stages are never counted. {sitting}",
@@ -435,6 +517,8 @@ def parse_systems(text: str) -> list[System]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", action="append", default=None, help="scan24 (default), ...; repeat it for several")
+    ap.add_argument("--seeds", default=None, help="comma-separated run.seed values, e.g. 0,1,2: each system runs once "
+                    "per seed and the tables show mean ± std (default: params.yaml's run.seed, one run)")
     ap.add_argument("--systems", type=parse_systems, default=list(SYSTEMS.values()),
                     help=f"comma-separated subset of {','.join(SYSTEMS)} (default: all)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
@@ -448,7 +532,8 @@ def main(argv=None) -> int:
     force = list(pipeline.load_stages()) if args.force_all else args.force
     try:
         results = run_benches(list(dict.fromkeys(args.scene or ["scan24"])), args.systems, args.overrides, args.until,
-                              force, args.artifacts, args.executor, args.workers)
+                              force, args.artifacts, args.executor, args.workers,
+                              seeds=[int(s) for s in args.seeds.split(",")] if args.seeds else None)
     except (pipeline.PipelineError, pipeline.ParamError, pipeline.SceneError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 import pipeline  # noqa: E402
 from manifoldneus.artifacts import load_evaluation  # noqa: E402
 from bench import bench  # noqa: E402
-from bench.bench_refine import git_commit, spread  # noqa: E402
+from bench.bench import git_commit, spread  # noqa: E402
 
 SYSTEMS = {
     "calibrated-masked": [],

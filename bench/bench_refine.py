@@ -27,7 +27,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -35,6 +34,7 @@ sys.path.insert(0, str(ROOT))
 import pipeline  # noqa: E402
 from manifoldneus.artifacts import load_evaluation, load_reference_surface_meta  # noqa: E402
 from bench import bench  # noqa: E402
+from bench.bench import git_commit, spread  # noqa: E402
 from manifoldneus import io  # noqa: E402
 
 TIMED = ("ingest", "features", "matching", "covisibility", "spectral", "schedule", "reference", "anchors",
@@ -118,24 +118,6 @@ def sfm_all(scene: str, overrides: list[str], iters: int, artifacts: Path, errs)
         out["psnr_masked"] = nvs.get("psnr_masked", nvs.get("psnr"))
         out["chamfer"] = ev.get("geometry", {}).get("chamfer_units")
     return out
-
-
-def git_commit() -> str | None:
-    import subprocess
-
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
-def spread(values) -> dict:
-    v = np.array([x for x in values if x is not None], float)
-    if not len(v):
-        return {"mean": None, "std": None, "n": 0}
-    return {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0, "n": int(len(v)),
-            "min": float(v.min()), "max": float(v.max())}
 
 
 def summarise(runs: list[dict]) -> dict:

@@ -24,11 +24,13 @@ class Params:
     enabled: bool = param(True, "Train the GT-pose reference (False: write a note and skip)")
     iters: int = param(1500, "Training iterations; bench/bench_refine.py sets the pose-free rounds' total, for a "
                        "comparison at equal iterations", lo=1)
+    seed: int = param(0, "Random seed of its training: fixed, not run.seed, so that runs of several seeds are "
+                      "measured against one reference (and share it)", lo=0)
 
 
 UPSTREAM = ("ingest", "ground_truth")
 # meshing: the keys of a mesh without an object crop (the crop needs the method's SfM region)
-SECTIONS = ("reference_surface", "train", "field", "render", "loss", "run", "split", "novel_views",
+SECTIONS = ("reference_surface", "train", "field", "render", "loss", "run.threads", "run.device", "split", "novel_views",
             *(f"meshing.{k}" for k in ("resolution", "keep_components", "drop_sphere_closure", "cull_by_masks",
                                        "cull_dilation", "cull_unseen", "visibility_size", "preview_size")))
 OUTPUTS = (artifacts.REFERENCE_SURFACE_META,)
@@ -55,7 +57,7 @@ def run(ctx) -> None:
     held = holdout_mask(len(views.names), ctx.section("split"))
     run_p = ctx.section("run")
     tp = ctx.section("train")
-    run = TrainRun(iters=ctx.params.iters, seed=run_p.seed, threads=run_p.threads, device=run_p.device)
+    run = TrainRun(iters=ctx.params.iters, seed=ctx.params.seed, threads=run_p.threads, device=run_p.device)
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     ckpt = ctx.checkpoint_dir / "model.pt"
     trainer = Trainer(views, ctx.section("field"), ctx.section("render"), ctx.section("loss"), tp, run=run,
