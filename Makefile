@@ -40,20 +40,20 @@ test: setup
 BENCH_SCENES = $(if $(filter command line,$(origin SCENES)),$(SCENES),$(if $(filter command line,$(origin SCENE)),$(SCENE),scan24))
 SEEDS ?= 0,1,2
 bench: setup
-	$(PY) bench/bench.py $(foreach s,$(BENCH_SCENES),--scene $(s)) --seeds $(SEEDS) $(ARGS)
-	$(PY) bench/results_md.py
+	$(PY) -m bench.bench $(foreach s,$(BENCH_SCENES),--scene $(s)) --seeds $(SEEDS) $(ARGS)
+	$(PY) -m bench.results_md
 
 # do the joint rounds refine their initialisation? synthetic, scan24, scan24_idr x 3 seeds (README: "Refinement")
 bench-refine: setup
-	$(PY) bench/bench_refine.py $(if $(filter command line,$(origin SCENE)),--scenes $(SCENE)) $(ARGS)
-	$(PY) bench/results_md.py
+	$(PY) -m bench.bench_refine $(if $(filter command line,$(origin SCENE)),--scenes $(SCENE)) $(ARGS)
+	$(PY) -m bench.results_md
 
 # where the neural trainer's step spends its time; rays per CPU-second (docs/PERFORMANCE.md)
 profile: setup
-	$(PY) bench/profile_step.py --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) $(ARGS)
+	$(PY) -m bench.profile_step --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) $(ARGS)
 
 results: setup
-	$(PY) bench/results_md.py
+	$(PY) -m bench.results_md
 
 report: setup
 	$(PY) pipeline.py report --scene $(SCENE) $(ARGS)
@@ -61,7 +61,7 @@ report: setup
 # the supplement's experiments (Tables A3-A6, Fig. A7, Sec. 4.4 sparse views) on the pipeline's cache
 sweep: setup
 	@test -n "$(TABLE)" || (echo "usage: make sweep TABLE=A3|A4|A5|A6|A7|sparse SCENE=<scene> [VALUES='0.65 0.5']"; exit 2)
-	$(PY) bench/sweep.py $(TABLE) --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) \
+	$(PY) -m bench.sweep $(TABLE) --scene $(if $(filter command line,$(origin SCENE)),$(SCENE),scan24) \
 		$(if $(VALUES),--values $(VALUES)) $(ARGS)
 
 clean:

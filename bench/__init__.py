@@ -1,3 +1,3 @@
-"""Benchmark, sweep and report scripts. A package so that `from bench import bench` finds
-bench/bench.py the same way from tests and from the scripts (which put the repository root first
-on sys.path); without it, a script's own folder on sys.path would shadow the package."""
+"""Benchmark, sweep and report scripts, run from the repository's root as modules
+(``python -m bench.bench ...``), so that ``from bench import bench`` finds this package from the
+scripts and the tests alike; the project itself (pipeline, runner, stages, manifoldneus) is installed."""

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Benchmark: ManifoldNeuS, its NeuS baselines and the pycolmap reference on one scene, in one sitting.
 
-    python bench/bench.py --scene scan24 [--scene S ...] [--seeds 0,1,2]
+    python -m bench.bench --scene scan24 [--scene S ...] [--seeds 0,1,2]
                           [--systems manifoldneus,neus-barf,neus-colmap,sfm-all,photos-alone,pycolmap]
                           [--set section.key=value ...] [--until STAGE] [--force STAGE | --force-all]
                           [--artifacts DIR] [--out-dir DIR] [--executor dask|dask://HOST:PORT|slurm] [--workers N]
@@ -40,13 +40,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+import pipeline
+from manifoldneus.artifacts import REFERENCE_POSE_METRICS, load_evaluation
+from manifoldneus import io
+from runner import executor
 
-import pipeline  # noqa: E402
-from manifoldneus.artifacts import load_evaluation  # noqa: E402
-from manifoldneus import io  # noqa: E402
-from runner import executor  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 FRONT_END = ("features", "matching", "covisibility", "spectral", "schedule")
 NEURAL = ("anchors", "successors", "mesh")
@@ -183,7 +182,7 @@ def neural_scores(evaluate_dir: Path, units: str | None) -> dict:
 
 def reference_scores(evaluate_poses_dir: Path) -> dict:
     """pycolmap's pose errors from `evaluate_poses` (a sparse model: no surface, no renderings)."""
-    res = io.load_json(evaluate_poses_dir / "reference_pose_metrics.json")
+    res = io.load_json(evaluate_poses_dir / REFERENCE_POSE_METRICS)
     if not res.get("evaluated"):
         return {}
     return {"units": res["units"], "n_valid": res["n_valid"], "n_views": res["n_views"], **pose_errors(res["summary"])}
@@ -486,10 +485,11 @@ def notes(result: dict) -> list[str]:
     return out
 
 
-def comparison_markdown(result: dict) -> str:
-    """The systems table, its footnotes and the stage x system table (also README's Results)."""
+def comparison_markdown(result: dict, with_stages: bool = True) -> str:
+    """The systems table, its footnotes and (`with_stages`) the stage x system table; README's Results
+    leave the last out (it is in the JSON and in what the bench prints)."""
     footnotes = "\n".join(f"{i}. {n}" for i, n in enumerate(notes(result), 1))
-    return f"{systems_table(result)}\n\n{footnotes}\n\n{stage_system_table(result)}"
+    return f"{systems_table(result)}\n\n{footnotes}" + (f"\n\n{stage_system_table(result)}" if with_stages else "")
 
 
 def stages_table(rows: dict) -> str:

@@ -2,7 +2,7 @@
 """Benchmark of the executors (issue 14): one reduced sweep run serially in this process and on a
 Dask LocalCluster of 1 and of 2 single-threaded workers, each from an empty artifacts folder.
 
-    python bench/bench_executor.py [--table A3] [--scene synthetic] [--values 1.0 0.85 0.65 0.5]
+    python -m bench.bench_executor [--table A3] [--scene synthetic] [--values 1.0 0.85 0.65 0.5]
                                    [--executors in-process,dask:1,dask:2] [--set section.key=value ...]
 
 Prints one row per executor: wall time of the whole sweep (shared upstream stages included), its
@@ -24,11 +24,10 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from bench import sweep
+from manifoldneus import io
 
-from bench import sweep  # noqa: E402
-from manifoldneus import io  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 # A sweep row of about a minute on one core: the synthetic scene at its defaults, short rounds,
 # round 1 only (what the tables read), no GT-pose surface.

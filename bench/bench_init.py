@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Initialisation benchmark: how good are the anchors' starting poses, before any neural training?
 
-    python bench/bench_init.py [--scenes synthetic,scan24,scan24_idr] [--settings default,alpha=0.5,...]
+    python -m bench.bench_init [--scenes synthetic,scan24,scan24_idr] [--settings default,alpha=0.5,...]
                                [--label NAME] [--artifacts DIR] [--out-dir DIR]
 
 Per scene and setting (a setting is a name and ``--set`` overrides, see SETTINGS): the front-end
@@ -18,19 +18,17 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import logging
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+import pipeline
+from manifoldneus import cameras, io, pose_init, pose_metrics, posefree, scenes
+from stages import anchors as anchors_stage
 
-import pipeline  # noqa: E402
-from manifoldneus import cameras, io, pose_init, pose_metrics, posefree, scenes  # noqa: E402
-from stages import anchors as anchors_stage  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 # the supplement's A3/A7 settings that lost the old initialisation (docs/REFINEMENT.md), and the default
 SETTINGS = {
@@ -67,15 +65,16 @@ def one(scene_name: str, setting: str, overrides: list[str], artifacts: Path) ->
     resolved = pipeline.resolve_params(stages, overrides=overrides)
     store = pipeline.Store(artifacts, scene.name)
     fps = pipeline.compute_fingerprints(stages, resolved, scene, store)
-    log = logging.getLogger("bench_init")
-    with tempfile.TemporaryDirectory() as tmp:
-        ctx = pipeline.Context(stages["anchors"], resolved, store, fps["anchors"]["upstream"], Path(tmp), scene, log)
-        inputs = posefree.load_inputs(**{s: ctx.input(s) for s in posefree.INPUT_STAGES})
-        rounds = inputs.schedule["round"]
-        anchors = [int(v) for v in np.flatnonzero((rounds == 0) & inputs.train_mask)]
+    upstream = fps["anchors"]["upstream"]
+    inputs = posefree.load_inputs(**{s: store.version_dir(s, upstream[s]) for s in posefree.INPUT_STAGES})
+    rounds = inputs.schedule["round"]
+    anchors = [int(v) for v in np.flatnonzero((rounds == 0) & inputs.train_mask)]
+    p = resolved["anchors"]
+    with tempfile.TemporaryDirectory() as tmp:  # COLMAP's own log
+        env = anchors_stage.InitEnv(logging.getLogger("bench_init"), Path(tmp) / "log.txt", resolved["run"].seed)
         t0 = time.perf_counter()
-        inputs, refine, _, _ = anchors_stage.calibrated_inputs(ctx, inputs, ctx.params)
-        res = anchors_stage.matches_init(ctx, inputs, anchors, ctx.params, refine)
+        inputs, refine, _, _ = anchors_stage.calibrated_inputs(env, inputs, p)
+        res = anchors_stage.matches_init(env, inputs, anchors, p, refine)
         seconds = time.perf_counter() - t0
     ids = res.view_ids
     row = {v: k for k, v in enumerate(ids)}

@@ -4,8 +4,8 @@ Trains on all views but every 8th (held out: 0, 8, 16, ...), within a wall-clock
 reports masked held-out PSNR (MSE over foreground pixels only), SSIM, throughput (rays/s), peak
 memory (max RSS) and wall time. Prints a table and writes JSON.
 
-    .venv/bin/python bench/bench_neural.py --field grid --budget 420 --out /tmp/bench_neural.json
-    .venv/bin/python bench/bench_neural.py --throughput-only      # rays/s of both fields
+    .venv/bin/python -m bench.bench_neural --field grid --budget 420 --out /tmp/bench_neural.json
+    .venv/bin/python -m bench.bench_neural --throughput-only      # rays/s of both fields
 
 The scene is read by manifoldneus.scenes (the ingest and ground_truth stages' readers).
 """
@@ -16,27 +16,25 @@ import os
 # OpenMP busy-waiting collapses throughput when the 2 cores are shared with other processes.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import resource  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from dataclasses import asdict, replace  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import resource
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
 
-import numpy as np  # noqa: E402
+import numpy as np
+import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from manifoldneus.artifacts import MESH
+from manifoldneus.field import FieldParams
+from manifoldneus.losses import LossParams
+from manifoldneus.metrics import psnr, ssim
+from manifoldneus.render import RenderParams
+from manifoldneus.scenes import read_ground_truth, read_views, resolve_scene
+from manifoldneus.train import TrainParams, Trainer, TrainRun, Views
+from stages.ingest import Params as IngestParams
 
-import torch  # noqa: E402
-
-from manifoldneus.field import FieldParams  # noqa: E402
-from manifoldneus.losses import LossParams  # noqa: E402
-from manifoldneus.metrics import psnr, ssim  # noqa: E402
-from manifoldneus.render import RenderParams  # noqa: E402
-from manifoldneus.scenes import read_ground_truth, read_views, resolve_scene  # noqa: E402
-from manifoldneus.train import TrainParams, Trainer, TrainRun, Views  # noqa: E402
-from stages.ingest import Params as IngestParams  # noqa: E402
 
 def load_scene(data: str) -> Views:
     """The scene's views as the ingest stage reads them (default ingest params) with its ground-truth poses."""
@@ -261,7 +259,7 @@ def main():
         t0 = time.time()
         args.mesh.mkdir(parents=True, exist_ok=True)
         mesh = extract_mesh(tr.sdf_fn(), resolution=192)
-        save_ply(mesh, args.mesh / "mesh.ply")
+        save_ply(mesh, args.mesh / MESH)
         save_preview(mesh, args.mesh / "mesh.png")
         res["mesh"] = {"faces": int(len(mesh.faces)), "seconds": time.time() - t0}
         if tr.views.masks is not None:

@@ -1,9 +1,9 @@
 #!/usr/bin/env python
 """Own photos: a scene's images alone (no intrinsics, no masks) against the same scene calibrated and masked.
 
-    python bench/bench_own_photos.py [--scene scan24_idr] [--seeds 0,1] [--set section.key=value ...]
+    python -m bench.bench_own_photos [--scene scan24_idr] [--seeds 0,1] [--set section.key=value ...]
                                      [--artifacts DIR] [--label NAME] [--out-dir DIR]
-    python bench/bench_own_photos.py --merge A.json B.json ...   # runs made side by side, one table
+    python -m bench.bench_own_photos --merge A.json B.json ...   # runs made side by side, one table
 
 Two systems through the whole pipeline, per seed (``run.seed``): ``calibrated-masked`` (the layout as
 it is) and ``photos-alone`` (``ingest.use_calibration=false ingest.load_masks=false``: the focal length
@@ -23,13 +23,12 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+import pipeline
+from manifoldneus.artifacts import load_evaluation
+from bench import bench
+from bench.bench import git_commit, spread
 
-import pipeline  # noqa: E402
-from manifoldneus.artifacts import load_evaluation  # noqa: E402
-from bench import bench  # noqa: E402
-from bench.bench import git_commit, spread  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 SYSTEMS = {
     "calibrated-masked": [],

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Refinement benchmark: do the joint field-and-pose rounds refine the poses they start from?
 
-    python bench/bench_refine.py [--scenes synthetic,scan24,scan24_idr] [--seeds 0,1,2]
+    python -m bench.bench_refine [--scenes synthetic,scan24,scan24_idr] [--seeds 0,1,2]
                                  [--set section.key=value ...] [--reference-seeds 0] [--artifacts DIR]
                                  [--label NAME] [--out-dir DIR]
 
@@ -28,14 +28,13 @@ import time
 from pathlib import Path
 
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+import pipeline
+from manifoldneus.artifacts import ROUND_META, load_evaluation, load_reference_surface_meta
+from bench import bench
+from bench.bench import git_commit, spread
+from manifoldneus import io
 
-import pipeline  # noqa: E402
-from manifoldneus.artifacts import load_evaluation, load_reference_surface_meta  # noqa: E402
-from bench import bench  # noqa: E402
-from bench.bench import git_commit, spread  # noqa: E402
-from manifoldneus import io  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 TIMED = ("ingest", "features", "matching", "covisibility", "spectral", "schedule", "reference", "anchors",
          "successors", "mesh", "reference_surface", "evaluate")
@@ -43,11 +42,11 @@ TIMED = ("ingest", "features", "matching", "covisibility", "spectral", "schedule
 
 def rounds_total_iters(store: pipeline.Store) -> int:
     """Iterations of the anchors' round and every successor round of the current versions."""
-    total = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / "round.json")
+    total = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / ROUND_META)
     steps = total["train"]["steps"]
     succ = store.version_dir("successors", store.current("successors"))
     for d in succ.glob("round_*"):
-        steps += io.load_json(d / "round.json")["train"]["steps"]
+        steps += io.load_json(d / ROUND_META)["train"]["steps"]
     return int(steps)
 
 

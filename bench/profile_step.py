@@ -8,8 +8,8 @@ steps (wall and process CPU seconds), then profiles ``--profile-steps`` more wit
 groups them by the trainer's labelled parts. ``--code DIR`` runs another checkout's manifoldneus
 (the same script measures old and new code in one sitting). Several seeds: mean and spread.
 
-    .venv/bin/python bench/profile_step.py --scene scan24 --seeds 0,1,2
-    .venv/bin/python bench/profile_step.py --code /tmp/old --label old     # a checkout of older code
+    .venv/bin/python -m bench.profile_step --scene scan24 --seeds 0,1,2
+    .venv/bin/python -m bench.profile_step --code /tmp/old --label old     # a checkout of older code
 """
 from __future__ import annotations
 
@@ -18,16 +18,16 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import resource  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
 
-import numpy as np  # noqa: E402
-import yaml  # noqa: E402
+import numpy as np
+import yaml
 
 HERE = Path(__file__).resolve().parent
 PARTS = ("train/sdf_cache", "train/sample_rays", "train/render", "train/losses", "train/pose_term",
@@ -123,8 +123,7 @@ def main() -> int:
     ap.add_argument("--label", default="current")
     ap.add_argument("--out", type=Path, default=None, help="JSON (default bench/perf/profile-<label>-<date>.json)")
     args = ap.parse_args()
-    sys.path.insert(0, str(HERE.parent))  # bench.bench_neural: this checkout's scene loader
-    sys.path.insert(0, str(args.code.resolve()))
+    sys.path.insert(0, str(args.code.resolve()))  # the checkout to measure, on purpose: possibly not this one
     import manifoldneus
 
     code = Path(manifoldneus.__file__).resolve().parent.parent

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Regenerate README's "Results" from the latest bench JSON of each scene (no hand-typed numbers).
 
-    python bench/results_md.py [--readme README.md] [--bench-dir bench] [--check]
+    python -m bench.results_md [--readme README.md] [--bench-dir bench] [--check]
 
 Replaces only the text between ``<!-- results:begin -->`` and ``<!-- results:end -->`` and, where the
 README has them, between ``<!-- headline:begin -->`` and ``<!-- headline:end -->`` (one sentence from
@@ -17,9 +17,8 @@ import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the package `bench`, not this folder
 
-from bench import bench  # noqa: E402
+from bench import bench
 
 BEGIN = "<!-- results:begin -->"
 END = "<!-- results:end -->"
@@ -147,7 +146,7 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
                          f"(docs/REFINEMENT.md): its figures are not what the code gives now, so they are not shown "
                          f"here; `make bench SCENE={scene}` measures them again. The refinement bench below is current.")
             continue
-        parts += [provenance(path, result, root), bench.comparison_markdown(result)]
+        parts += [provenance(path, result, root), bench.comparison_markdown(result, with_stages=False)]
     if not scenes:
         parts.append("No bench results yet: run `make bench`.")
     refine = refine_files(bench_dir)

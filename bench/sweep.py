@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """The supplement's experiments as sweep commands on the pipeline's cache.
 
-    python bench/sweep.py TABLE [--scene scan24] [--values V ...] [--set section.key=value ...]
+    python -m bench.sweep TABLE [--scene scan24] [--values V ...] [--set section.key=value ...]
                           [--profile fast|paper] [--artifacts DIR] [--out DIR] [--tag NAME]
                           [--executor in-process|dask|dask://HOST:PORT|slurm] [--workers N]
 
@@ -44,18 +44,17 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+from scipy.stats import rankdata
+
+import pipeline
+from manifoldneus import io
+from manifoldneus.artifacts import load_evaluation, load_gt_meta, load_schedule_meta, load_views_meta
+from runner import executor
+from manifoldneus.config import ParamError
+from manifoldneus.scenes import SceneError
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-import numpy as np  # noqa: E402
-from scipy.stats import rankdata  # noqa: E402
-
-import pipeline  # noqa: E402
-from manifoldneus import io  # noqa: E402
-from manifoldneus.artifacts import load_evaluation, load_gt_meta, load_schedule_meta, load_views_meta  # noqa: E402
-from runner import executor  # noqa: E402
-from manifoldneus.config import ParamError  # noqa: E402
-from manifoldneus.scenes import SceneError  # noqa: E402
 
 ANCHOR_ROUND, FIRST_SUCCESSOR_ROUND = "anchors", "round_1"  # round labels of evaluation.json
 

@@ -24,6 +24,16 @@ EVALUATION = "evaluation.json"
 INITIAL_POSES = "initial_poses.zarr"
 COVISIBILITY = "covisibility.zarr"
 POSES = "poses.zarr"  # the same name in reference, ground_truth, mesh and every pose-free round
+MESH = "mesh.ply"  # a surface mesh: mesh's, reference_surface's, export's (PLY)
+MODEL = "model.pt"  # a trained field with its pose corrections (a round's, reference_surface's)
+ROUND_META = "round.json"  # a round's info: views, training summary, initialisation
+SPECTRAL = "spectral.zarr"  # spectral's embedding phi and component labels
+COMPONENTS = "components.json"  # covisibility's connected components
+REFERENCE_POSE_METRICS = "reference_pose_metrics.json"  # evaluate_poses' scores of the pycolmap reference
+# plots the report shows
+SCHEDULE_PLOT = "schedule.png"
+CAMERAS_PLOT = "cameras.png"
+POSE_ERROR_PLOT = "pose_error_rounds.png"
 
 
 def load_views_meta(ingest_dir: Path) -> dict:
@@ -35,6 +45,16 @@ def load_views_arrays(ingest_dir: Path, names: list[str] | None = None) -> dict:
     """``ingest``'s ``views.zarr``: ``images``, ``K`` and, where the scene has them, ``masks``,
     ``mono_depth``, ``mono_normal`` (all, or ``names``)."""
     return io.load_arrays(Path(ingest_dir) / VIEWS, names)
+
+
+VIEW_PIXELS = ("images", "mono_depth", "mono_normal")  # what views.zarr holds that is not a camera or a mask
+
+
+def load_view_pixels(ingest_dir: Path) -> dict:
+    """``ingest``'s ``images`` and, where the scene has them, ``mono_depth`` and ``mono_normal``: the
+    arrays of ``views.zarr`` that :data:`VIEW_PIXELS` names."""
+    path = Path(ingest_dir) / VIEWS
+    return io.load_arrays(path, [a for a in VIEW_PIXELS if a in io.array_names(path)])
 
 
 def load_gt_meta(gt_dir: Path) -> dict:
@@ -117,7 +137,7 @@ def load_round_arrays(round_dir: Path, names: list[str] | None = None) -> dict:
 def load_round(round_dir: Path) -> dict:
     """A pose-free round: :func:`load_round_arrays` plus ``round.json`` under 'info'."""
     out = load_round_arrays(round_dir)
-    out["info"] = io.load_json(Path(round_dir) / "round.json")
+    out["info"] = io.load_json(Path(round_dir) / ROUND_META)
     return out
 
 

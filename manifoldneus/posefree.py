@@ -318,5 +318,5 @@ def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> Non
     io.save_arrays(out_dir / artifacts.POSES, {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed, "K": rnd.K_all,
                                      "optimised": np.isin(np.arange(n_views), rnd.ids),
                                      "pose_trace": trace, "pose_grad_norm": grads, **lens}, chunk_first=False)
-    rnd.trainer.save(out_dir / "model.pt")
-    io.save_json(out_dir / "round.json", info)
+    rnd.trainer.save(out_dir / artifacts.MODEL)
+    io.save_json(out_dir / artifacts.ROUND_META, info)

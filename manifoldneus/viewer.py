@@ -145,7 +145,7 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
         rounds_json.append(entry)
 
     roles = ["held out" if held_out[i] else v["role"] for i, v in enumerate(schedule["views"])]
-    mesh = meshing.load_mesh(versions["export"] / "mesh.ply")
+    mesh = meshing.load_mesh(versions["export"] / artifacts.MESH)
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     colours = None
     if mesh.visual.kind == "vertex":

@@ -84,7 +84,7 @@ class Context:
         self.checkpoint_dir = store.stage_dir(stage.name) / f".ckpt-{fingerprint}"
 
     def section(self, name: str):
-        reads = self.stage.reads()
+        reads = self.stage.keys_read()
         if name not in reads:
             raise PipelineError(f"stage {self.stage.name} reads section {name!r} without declaring it in SECTIONS")
         keys = reads[name]
@@ -278,7 +278,7 @@ def run(
     store = Store(artifacts, scene.name, preset)
     own = own_ingredients(stages, resolved, scene)
     selected = select(stages, until, only)
-    if any("run" in stages[name].reads() for name in selected):  # before the front-end, not after it
+    if any("run" in stages[name].keys_read() for name in selected):  # before the front-end, not after it
         problem = config.device_problem(resolved["run"].device)
         if problem:
             raise ParamError(f"run.device: {problem}")

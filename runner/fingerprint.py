@@ -128,11 +128,13 @@ def chain_fingerprints(stages: dict[str, Stage], own: dict[str, dict], store: St
     """Per stage: fingerprint and the ingredients that made it (for status and params-diff).
 
     An upstream enters by the content digest of its version when that version exists in ``store``
-    (so equal bytes give equal downstream fingerprints), else by its fingerprint."""
+    (so equal bytes give equal downstream fingerprints), else by its fingerprint; where the stage
+    declares the files it reads of it (``READS``), by the digest of those files only."""
     out: dict[str, dict] = {}
     for name, stage in stages.items():
         upstream = {u: out[u]["fingerprint"] for u in stage.upstream}
-        content = {u: (store.content(u, fp) if store is not None else None) or f"recipe:{fp}" for u, fp in upstream.items()}
+        content = {u: (store.content(u, fp, stage.reads.get(u)) if store is not None else None) or f"recipe:{fp}"
+                   for u, fp in upstream.items()}
         ingredients = {**own[name], "upstream_content": content}
         blob = json.dumps(ingredients, sort_keys=True, default=str).encode()
         out[name] = {**ingredients, "upstream": upstream, "fingerprint": hashlib.sha256(blob).hexdigest()[:12]}

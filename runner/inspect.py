@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from manifoldneus.artifacts import load_evaluation, load_schedule_meta  # `artifacts` is the folder here
+from manifoldneus.artifacts import MESH, load_evaluation, load_schedule_meta
+from manifoldneus.export import FRAME  # `artifacts` is the folder here
 from manifoldneus.scenes import resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, DEFAULT_PARAMS, PipelineError
 from runner.execute import RunReport, _refuse_damaged, cli_hint
@@ -55,14 +56,14 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
             out.append(f"surface: Chamfer {geo['chamfer_units']:.3g} {geo.get('units', '')} to {geo.get('reference', 'the reference')}")
     if "export" in report and store.current("export"):  # first: what a user takes away, in the input's frame
         export_dir = store.version_dir("export", store.current("export"))
-        frame = json.loads((export_dir / "world_from_model.json").read_text())
+        frame = json.loads((export_dir / FRAME).read_text())
         where = "the input's world" if frame["frame"] == "input" else "the method's unit-sphere frame"
         out.append(f"result:  {export_dir} (transforms.json, colmap/, mesh.glb, mesh.ply, sparse_points.ply; "
                    f"{where}, {frame['units']})")
         out.append(f"viewer:  python pipeline.py view --scene {scene_name}{f' --preset {preset}' if preset else ''}")
     if "mesh" in report:
         mesh_dir = store.version_dir("mesh", version["mesh"])
-        out += [f"mesh:    {mesh_dir / 'mesh.ply'} (the method's unit-sphere frame, no colours)",
+        out += [f"mesh:    {mesh_dir / MESH} (the method's unit-sphere frame, no colours)",
                 f"cameras: {mesh_dir / 'colmap'} (COLMAP text model, the method's frame)"]
     if "evaluate" in report:
         out.append(f"report:  make report SCENE={scene_name}")

@@ -86,7 +86,7 @@ def resolve_params(
 def stage_params(stage: Stage, resolved: dict) -> dict:
     """The parameters a stage declares (whole sections, or the declared keys of a section)."""
     out = {}
-    for section, keys in stage.reads().items():
+    for section, keys in stage.keys_read().items():
         values = config.as_dict(resolved[section])
         unknown = sorted(set(keys or ()) - set(values))
         if unknown:

@@ -1,10 +1,11 @@
-"""The stages and their DAG: each stage module's declarations (UPSTREAM, SECTIONS, OUTPUTS, Params),
+"""The stages and their DAG: each stage module's declarations (UPSTREAM, SECTIONS, OUTPUTS, Params and,
+optionally, READS),
 read from ``stages.STAGES``, and which of them a run brings up to date."""
 from __future__ import annotations
 
 import importlib
 import types
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from runner.common import PipelineError
 
@@ -16,12 +17,13 @@ class Stage:
     upstream: tuple[str, ...]
     sections: tuple[str, ...]
     outputs: tuple[str, ...]
+    reads: dict[str, tuple[str, ...]] = field(default_factory=dict)  # upstream -> the files of its version run() reads (READS); else all of them
 
     @property
     def params_cls(self):
         return self.module.Params
 
-    def reads(self) -> dict[str, frozenset | None]:
+    def keys_read(self) -> dict[str, frozenset | None]:
         """Section -> the keys the stage declares it reads (``"section.key"`` in SECTIONS), or None
         for a whole section (``"section"``). Only what is declared enters its fingerprint."""
         out: dict[str, set | None] = {}
@@ -41,7 +43,10 @@ def load_stages() -> dict[str, Stage]:
     out: dict[str, Stage] = {}
     for name in registry.STAGES:
         module = importlib.import_module(f"stages.{name}")
-        stage = Stage(name, module, tuple(module.UPSTREAM), tuple(module.SECTIONS), tuple(module.OUTPUTS))
+        reads = {u: tuple(files) for u, files in getattr(module, "READS", {}).items()}
+        stage = Stage(name, module, tuple(module.UPSTREAM), tuple(module.SECTIONS), tuple(module.OUTPUTS), reads)
+        if set(reads) - set(stage.upstream):
+            raise PipelineError(f"stage {name}: READS names {sorted(set(reads) - set(stage.upstream))}, not upstream")
         for up in stage.upstream:
             if up not in out:
                 raise PipelineError(f"stage {name}: upstream {up!r} is not an earlier stage in stages.STAGES")

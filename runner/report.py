@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus import artifacts, io, pose_metrics
-from manifoldneus.artifacts import load_views_meta  # build_report's `artifacts` is the folder
+from manifoldneus.artifacts import CAMERAS_PLOT, SCHEDULE_PLOT, load_views_meta  # build_report's `artifacts` is the folder
 from manifoldneus.scenes import SceneError, resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, PipelineError
 from runner.store import Store
@@ -413,7 +413,7 @@ def section_viewer(page: Page, systems: dict[str, Pointers], scene: str) -> None
 def section_schedule(page: Page, systems: dict[str, Pointers], scene: str) -> None:
     page.add("## Schedule (supplement Fig. A6)", "")
     for name, ptr in systems.items():
-        png = ptr.file("schedule", "schedule.png")
+        png = ptr.file("schedule", SCHEDULE_PLOT)
         page.add(f"### {name}", "")
         if png:
             page.image(f"{slug(name)}_schedule.png", f"{name}: schedule", png)
@@ -426,7 +426,7 @@ def section_cameras(page: Page, systems: dict[str, Pointers], reference: tuple[P
     """Reuses the PNG the evaluation stages draw; plots the final round's alignment otherwise."""
     page.add("## Aligned cameras (supplement Fig. A2)", "",
              "Estimated cameras (red) Sim3-aligned to the ground truth (grey), final poses.", "")
-    drawn = {name: ptr.file("evaluate", "cameras.png") for name, ptr in systems.items()}
+    drawn = {name: ptr.file("evaluate", CAMERAS_PLOT) for name, ptr in systems.items()}
     ref_png = None if reference[1] is None else reference[1] / "reference_cameras.png"
     drawn[REFERENCE] = ref_png if ref_png is not None and ref_png.is_file() else None
     for name, png in drawn.items():

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from manifoldneus.scenes import resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, MANIFEST, PipelineError
-from runner.fingerprint import sha256_of
+from runner.fingerprint import content_digest, sha256_of
 from runner.registry import load_stages
 
 
@@ -57,12 +57,19 @@ class Store:
         os.symlink(fingerprint, tmp)
         os.replace(tmp, self.stage_dir(stage) / self.pointer)
 
-    def content(self, stage: str, fingerprint: str) -> str | None:
-        """The content digest of a complete version (None: absent, unreadable, or written before digests)."""
+    def content(self, stage: str, fingerprint: str, files: tuple[str, ...] | None = None) -> str | None:
+        """The content digest of a complete version, or with ``files`` (paths inside it: a file, or a
+        folder and what is under it) of those files only (None: absent, unreadable, or written before
+        digests)."""
         try:
-            return json.loads((self.version_dir(stage, fingerprint) / MANIFEST).read_text()).get("content")
+            manifest = json.loads((self.version_dir(stage, fingerprint) / MANIFEST).read_text())
         except (OSError, ValueError):
             return None
+        if files is None or "files" not in manifest:
+            return manifest.get("content")
+        picked = {rel: rec for rel, rec in manifest["files"].items()
+                  if any(rel == f or rel.startswith(f.rstrip("/") + "/") for f in files)}
+        return content_digest(picked)
 
     def damage(self, stage: str, fingerprint: str, deep: bool = False) -> list[str]:
         """What is wrong with a version's files against its manifest: missing files and wrong sizes

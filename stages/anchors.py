@@ -19,7 +19,9 @@ the rounds' training without masks).
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -116,6 +118,16 @@ SECTIONS = ("anchors", "train", "field", "render", "loss", "gate", "corresponden
 OUTPUTS = ("round_0", artifacts.INITIAL_POSES)
 
 
+@dataclass
+class InitEnv:
+    """What the initialisation needs of its run: where it logs, the file COLMAP's own output goes to,
+    and the seed of COLMAP's random choices."""
+
+    log: logging.Logger
+    log_path: Path
+    seed: int
+
+
 def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndarray, np.ndarray]:
     """pycolmap's poses in the unit-sphere gauge of its own points; (w2c [N,4,4], registered [N])."""
     import pycolmap
@@ -131,7 +143,7 @@ def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndar
     return cameras.transform_w2c(ref["w2c"], s, np.eye(3), -s * centre), ref["registered"].astype(bool)
 
 
-def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Params
+def initial_poses(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int], p: Params, reference_dir: Path
                   ) -> tuple[np.ndarray, posefree.SceneInputs, dict, dict]:
     """(w2c [N,4,4] of the anchors (identity elsewhere), the inputs with the K and lens distortion the
     poses belong to (:func:`manifoldneus.posefree.with_intrinsics`), what was done,
@@ -146,40 +158,40 @@ def initial_poses(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Para
         w2c[anchors] = pose_init.identity_init(len(anchors), p.identity_distance)
         return w2c, inputs, {"method": "identity"}, no_points
     if p.pose_init == "reference":
-        ref, registered = reference_poses(ctx.input("reference"), n, p.gauge_radius)
+        ref, registered = reference_poses(reference_dir, n, p.gauge_radius)
         if registered.any():  # pycolmap's intrinsics (refined when it refined them)
             ids = np.flatnonzero(registered)
-            ref_K = artifacts.load_reference_poses(ctx.input("reference"), ["K"])["K"]
+            ref_K = artifacts.load_reference_poses(reference_dir, ["K"])["K"]
             K = sfm.shared_K(K, inputs.sizes, ids, ref_K[ids])
         missing = [inputs.names[a] for a in anchors if not registered[a]]
         if missing:
-            ctx.log.warning("pycolmap did not register anchors %s; they start at a registered neighbour's pose", missing)
+            env.log.warning("pycolmap did not register anchors %s; they start at a registered neighbour's pose", missing)
         w2c[anchors] = ref[anchors]
         for a in anchors:
             if not registered[a]:
                 nb = [j for j in np.argsort(-inputs.W[a]) if registered[j]]
                 w2c[a] = ref[nb[0]] if nb else np.eye(4)
         return w2c, posefree.with_intrinsics(inputs, K), {"method": "reference", "unregistered": missing}, no_points
-    inputs, refine, calibration, calibration_rec = calibrated_inputs(ctx, inputs, p)
-    res = matches_init(ctx, inputs, anchors, p, refine)
+    inputs, refine, calibration, calibration_rec = calibrated_inputs(env, inputs, p)
+    res = matches_init(env, inputs, anchors, p, refine)
     ids = res.view_ids
     bridges = sorted(set(ids) - set(anchors))
     unplaced = [v for v in res.unplaced if v in set(anchors)]
     for v in unplaced:
-        ctx.log.warning("initialisation could not place anchor %s (%s); it starts at a neighbour's pose",
+        env.log.warning("initialisation could not place anchor %s (%s); it starts at a neighbour's pose",
                         inputs.names[v], res.why_unplaced[v])
     row = {v: k for k, v in enumerate(ids)}
     w2c[anchors] = res.w2c[[row[a] for a in anchors]]
     if res.diagnostics["refine_intrinsics"] and res.placed.any():
         K, distortion = estimated_intrinsics(inputs, res)
-        log_refined(ctx, res.diagnostics["refine_intrinsics"], inputs.views.K[anchors[0]], K[anchors[0]],
+        log_refined(env, res.diagnostics["refine_intrinsics"], inputs.views.K[anchors[0]], K[anchors[0]],
                     distortion[anchors[0]], "anchors")
         inputs = posefree.with_intrinsics(inputs, K, distortion)
     return w2c, inputs, {"method": "matches", "per_view": {int(a): res.method[row[a]] for a in anchors},
                  "bridges": [int(v) for v in bridges], "unplaced": [inputs.names[v] for v in unplaced],
                  "why_unplaced": {inputs.names[v]: res.why_unplaced[v] for v in unplaced},
                  **res.diagnostics, "calibration": calibration}, {"object_points": res.points[res.point_in_mask],
-                                                                  "sight_lines": lines_of_sight(ctx, res, calibration_rec, p)}
+                                                                  "sight_lines": lines_of_sight(env, res, calibration_rec, p)}
 
 
 def sight_lines(res: pose_init.InitResult) -> np.ndarray:
@@ -194,7 +206,7 @@ def sight_lines(res: pose_init.InitResult) -> np.ndarray:
         else np.zeros((0, 2, 3))
 
 
-def lines_of_sight(ctx, res: pose_init.InitResult, calibration: pose_init.InitResult | None, p: Params) -> np.ndarray:
+def lines_of_sight(env: InitEnv, res: pose_init.InitResult, calibration: pose_init.InitResult | None, p: Params) -> np.ndarray:
     """The lines of sight (:func:`sight_lines`) in the anchors' gauge frame: the self-calibration's (every
     training view) brought onto it by the similarity between the two reconstructions' common views' camera
     centres, when ``anchors.sight_lines_from`` asks for them and they exist; else the anchors' own."""
@@ -206,7 +218,7 @@ def lines_of_sight(ctx, res: pose_init.InitResult, calibration: pose_init.InitRe
     row = {v: k for k, v in enumerate(calibration.view_ids)}
     common = [(row[v], k) for k, v in enumerate(res.view_ids) if v in row and res.placed[k] and calibration.placed[row[v]]]
     if len(common) < 3:
-        ctx.log.warning("the self-calibration shares %d placed views with the anchors' initialisation: too few to "
+        env.log.warning("the self-calibration shares %d placed views with the anchors' initialisation: too few to "
                         "bring its lines of sight over; the anchors' own are used", len(common))
         return own
     src, dst = (np.array(c) for c in zip(*common))
@@ -216,7 +228,7 @@ def lines_of_sight(ctx, res: pose_init.InitResult, calibration: pose_init.InitRe
     lines = cameras.transform_points(M, lines.reshape(-1, 3)).reshape(-1, 2, 3)
     gap = np.linalg.norm(cameras.transform_points(M, cameras.camera_centers(calibration.w2c[src]))
                          - cameras.camera_centers(res.w2c[dst]), axis=1)
-    ctx.log.info("lines of sight: %d observations of %d training views (self-calibration), brought onto the anchors' "
+    env.log.info("lines of sight: %d observations of %d training views (self-calibration), brought onto the anchors' "
                  "frame by %d common views (centres within %.4f, max %.4f); the anchors' own: %d", len(lines),
                  int(calibration.placed.sum()), len(common), gap.mean(), gap.max(), len(own))
     return lines
@@ -232,13 +244,13 @@ def estimated_intrinsics(inputs: posefree.SceneInputs, res: pose_init.InitResult
     return K, distortion
 
 
-def log_refined(ctx, refine, K_before: np.ndarray, K_after: np.ndarray, distortion: np.ndarray, views: str) -> None:
-    ctx.log.info("intrinsics refined (%s) on the %s: focal %.1f -> %.1f px, principal point (%.1f, %.1f) -> "
+def log_refined(env: InitEnv, refine, K_before: np.ndarray, K_after: np.ndarray, distortion: np.ndarray, views: str) -> None:
+    env.log.info("intrinsics refined (%s) on the %s: focal %.1f -> %.1f px, principal point (%.1f, %.1f) -> "
                  "(%.1f, %.1f), radial distortion k1 %.4g", ", ".join(refine), views, K_before[0, 0], K_after[0, 0],
                  *K_before[:2, 2], *K_after[:2, 2], distortion[0])
 
 
-def calibrated_inputs(ctx, inputs: posefree.SceneInputs, p: Params
+def calibrated_inputs(env: InitEnv, inputs: posefree.SceneInputs, p: Params
                       ) -> tuple[posefree.SceneInputs, tuple, dict | None, pose_init.InitResult | None]:
     """The `matches` initialisation's intrinsics: (inputs with the self-calibrated K when `calibrate_on`
     is trainable, what the anchors' own bundle adjustment may still refine, the calibration's record and
@@ -246,31 +258,31 @@ def calibrated_inputs(ctx, inputs: posefree.SceneInputs, p: Params
     refine = tuple(p.refine_intrinsics) if sfm.intrinsics_mode(p.intrinsics, inputs.intrinsics_source) == "refine" else ()
     if not refine or p.calibrate_on != "trainable":
         return inputs, refine, None, None
-    K, distortion, calibration, reconstruction = self_calibrate(ctx, inputs, refine, p)
+    K, distortion, calibration, reconstruction = self_calibrate(env, inputs, refine, p)
     return posefree.with_intrinsics(inputs, K, distortion), (), calibration, reconstruction
 
 
-def self_calibrate(ctx, inputs: posefree.SceneInputs, refine, p: Params
+def self_calibrate(env: InitEnv, inputs: posefree.SceneInputs, refine, p: Params
                    ) -> tuple[np.ndarray, np.ndarray | None, dict, pose_init.InitResult | None]:
     """The shared camera's intrinsics ``refine`` estimated by COLMAP's mapper and bundle adjustment on every
     trainable view's matches (a few anchors at a narrow field of view do not pin the principal point down);
     (K [N,3,3], lens distortion [N,4] or None, what was done, the reconstruction). Its poses are not kept:
     the anchors are initialised afterwards, K fixed, on keypoints without the distortion."""
     ids = [int(v) for v in np.flatnonzero(inputs.train_mask)]
-    with io.native_output_to(ctx.log_path):
+    with io.native_output_to(env.log_path):
         res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
                                           sizes=inputs.sizes, refine=refine,
                                           prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px,
                                           final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px,
                                           principal_point_p=p.principal_point_p, radial_p=p.radial_p,
-                                          seed=ctx.section("run").seed, log=ctx.log.info)
+                                          seed=env.seed, log=env.log.info)
     placed = np.flatnonzero(res.placed)
     if len(placed) == 0:
-        ctx.log.warning("self-calibration registered no view; the intrinsics stay as the ingest gave them")
+        env.log.warning("self-calibration registered no view; the intrinsics stay as the ingest gave them")
         return inputs.views.K, None, {"views": len(ids), "registered": 0}, None
     K, distortion = estimated_intrinsics(inputs, res)
     first = ids[placed[0]]
-    log_refined(ctx, refine, inputs.views.K[first], K[first], distortion[first], f"{len(placed)}/{len(ids)} trainable views")
+    log_refined(env, refine, inputs.views.K[first], K[first], distortion[first], f"{len(placed)}/{len(ids)} trainable views")
     return K, distortion, {"views": len(ids), "registered": int(len(placed)), "refine": list(refine),
                "K": K[first].tolist(), "distortion": distortion[first].tolist(),
                "principal_point_test": res.diagnostics["principal_point_test"],
@@ -278,7 +290,7 @@ def self_calibrate(ctx, inputs: posefree.SceneInputs, refine, p: Params
                "mean_reproj_px": res.diagnostics["mean_reproj_px"], "seconds": res.diagnostics["seconds_total"]}, res
 
 
-def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Params, refine=()
+def matches_init(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int], p: Params, refine=()
                  ) -> pose_init.InitResult:
     """The `matches` initialisation of the anchors (and of the views that bridge them, whose poses
     are not kept): COLMAP on the front-end's matches (bundle adjustment refining the intrinsics
@@ -286,11 +298,11 @@ def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Param
     ids = init_views(anchors, inputs.W, np.flatnonzero(inputs.train_mask), p.bridge_min_matches)
     bridges = sorted(set(ids) - set(anchors))
     if bridges:
-        ctx.log.info("the anchors' own matches link them weakly (weakest spanning link %g < %d matches): their "
+        env.log.info("the anchors' own matches link them weakly (weakest spanning link %g < %d matches): their "
                      "initialisation also uses views %s, which bridge them", mavos.bottleneck_weight(inputs.W, anchors),
                      p.bridge_min_matches, [inputs.names[v] for v in bridges])
     masks = None if inputs.views.masks is None else [inputs.views.masks[v] for v in ids]
-    with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
+    with io.native_output_to(env.log_path):  # COLMAP's own log goes to log.txt
         return pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
                                            sizes=inputs.sizes, refine=refine,
                                            prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px,
@@ -299,7 +311,7 @@ def matches_init(ctx, inputs: posefree.SceneInputs, anchors: list[int], p: Param
                                            object_min_seen=p.object_min_seen,
                                            object_gauge_percentile=p.object_gauge_percentile,
                                            principal_point_p=p.principal_point_p, radial_p=p.radial_p,
-                                           seed=ctx.section("run").seed, log=ctx.log.info)
+                                           seed=env.seed, log=env.log.info)
 
 
 def init_views(anchors: list[int], W: np.ndarray, trainable, min_matches: int) -> list[int]:
@@ -348,7 +360,9 @@ def run(ctx) -> None:
         raise RuntimeError(f"only {len(anchors)} trainable anchor view(s); check schedule.anchor_percent and "
                            f"split.holdout_every")
     n = len(inputs.names)
-    w2c0, inputs, init_info, sfm_points = initial_poses(ctx, inputs, anchors, p)  # every round uses its K and lens
+    env = InitEnv(ctx.log, ctx.log_path, ctx.section("run").seed)
+    # every round uses the K and lens distortion the initial poses belong to
+    w2c0, inputs, init_info, sfm_points = initial_poses(env, inputs, anchors, p, ctx.input("reference"))
     if max(p.perturb_rot_deg, default=0.0) > 0 or p.perturb_centre_frac > 0:
         w2c0[anchors] = perturbed(w2c0[anchors], p, ctx.section("run").seed)
         init_info["perturbed"] = {"rot_deg": list(p.perturb_rot_deg), "centre_frac": p.perturb_centre_frac}

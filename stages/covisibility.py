@@ -36,7 +36,7 @@ class Params:
 
 UPSTREAM = ("matching",)
 SECTIONS = ("covisibility",)
-OUTPUTS = (artifacts.COVISIBILITY, "components.json", "covisibility.png", "graph.png")
+OUTPUTS = (artifacts.COVISIBILITY, artifacts.COMPONENTS, "covisibility.png", "graph.png")
 
 
 # --------------------------------------------------------------------------- plain functions
@@ -141,7 +141,7 @@ def run(ctx) -> None:
         attrs={"names": names, "min_inliers": p.min_inliers},
     )
     save_json(
-        Path(ctx.out) / "components.json",
+        Path(ctx.out) / artifacts.COMPONENTS,
         {
             "n_components": n_comp,
             "components": comp_idx,

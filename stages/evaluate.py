@@ -31,7 +31,7 @@ class Params:
 
 UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "mesh", "reference_surface")
 SECTIONS = ("evaluate", "run.device", "split", "novel_views")
-OUTPUTS = (artifacts.EVALUATION, "pose_error_rounds.png")
+OUTPUTS = (artifacts.EVALUATION, artifacts.POSE_ERROR_PLOT)
 
 
 def input_signature(scene, p) -> str:
@@ -117,7 +117,7 @@ def run(ctx) -> None:
     if not gt_meta["has_poses"]:
         ctx.log.warning("no ground truth: nothing to evaluate against")
         io.save_json(ctx.out / artifacts.EVALUATION, {"has_ground_truth": False})
-        io.save_png(ctx.out / "pose_error_rounds.png", np.zeros((8, 8, 3)))
+        io.save_png(ctx.out / artifacts.POSE_ERROR_PLOT, np.zeros((8, 8, 3)))
         return
     gt = artifacts.load_ground_truth_poses(ctx.input("ground_truth"))
     units = gt_meta["units_per_scene_unit"]
@@ -154,17 +154,17 @@ def run(ctx) -> None:
         ctx.metrics["placement_rot_err_deg_mean"] = report["placement"]["rot_err_deg"]["mean"]
         ctx.log.info("placement: the final views at their first poses: rotation %.3f deg (mean)",
                      report["placement"]["rot_err_deg"]["mean"])
-    plot_rounds([r for r in rows if "summary" in r], ctx.out / "pose_error_rounds.png", gt_meta["units"])
+    plot_rounds([r for r in rows if "summary" in r], ctx.out / artifacts.POSE_ERROR_PLOT, gt_meta["units"])
     if final_res is None or "summary" not in rows[-1]:
         ctx.log.warning("the final round could not be scored: no geometry or novel-view evaluation")
         io.save_json(ctx.out / artifacts.EVALUATION, report)
         return
-    pose_metrics.plot_cameras(final_res["w2c_aligned"], gt["w2c"], ctx.out / "cameras.png", valid=final_res["valid"],
+    pose_metrics.plot_cameras(final_res["w2c_aligned"], gt["w2c"], ctx.out / artifacts.CAMERAS_PLOT, valid=final_res["valid"],
                               held_out=holdout_mask(len(names), ctx.section("split")),
                               title=f"{ctx.scene}: final poses (Sim3-aligned) vs GT")
     # --- geometry
 
-    mesh = meshing.load_mesh(ctx.input("mesh") / "mesh.ply")
+    mesh = meshing.load_mesh(ctx.input("mesh") / artifacts.MESH)
     al = final_res["alignment"]
     pred = metrics.sample_surface(mesh, p.chamfer_points) if len(mesh.faces) else np.zeros((0, 3))
     pred = al["s"] * pred @ np.asarray(al["R"]).T + np.asarray(al["t"])
@@ -181,7 +181,7 @@ def run(ctx) -> None:
     else:
         ref_meta = artifacts.load_reference_surface_meta(ctx.input("reference_surface"))
         if ref_meta.get("trained"):
-            ref_mesh = meshing.load_mesh(ctx.input("reference_surface") / "mesh.ply")
+            ref_mesh = meshing.load_mesh(ctx.input("reference_surface") / artifacts.MESH)
             ref_pts = metrics.sample_surface(ref_mesh, p.chamfer_points)
             ref_label = "mesh of the GT-pose reference_surface (not DTU's official point cloud)"
             diag = float(np.linalg.norm(ref_pts.max(0) - ref_pts.min(0)))
@@ -197,7 +197,7 @@ def run(ctx) -> None:
     if len(held):
         views = artifacts.load_views(ctx.input("ingest"), final["w2c"], final["K"], final.get("distortion"))
         ids = np.flatnonzero(final["optimised"].astype(bool))
-        trainer = evaluation.trainer_from_checkpoint(final_dir / "model.pt", posefree.subset_views(views, ids, final["w2c"]),
+        trainer = evaluation.trainer_from_checkpoint(final_dir / artifacts.MODEL, posefree.subset_views(views, ids, final["w2c"]),
                                                      ctx.section("run").device)
         test_w2c = evaluation.gt_in_model_frame(al, gt["w2c"])
         if views.masks is None and "masks" in gt:  # scored on the object too, as a masked run is

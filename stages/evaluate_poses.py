@@ -35,7 +35,7 @@ class Params:
 
 UPSTREAM = ("ingest", "ground_truth", "reference")
 SECTIONS = ("evaluate_poses",)
-OUTPUTS = ("reference_pose_metrics.json",)
+OUTPUTS = (artifacts.REFERENCE_POSE_METRICS,)
 
 
 def _units_scale(gt_dir: Path, normalization: np.ndarray) -> tuple[float, str]:

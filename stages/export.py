@@ -44,7 +44,7 @@ class Params:
 
 UPSTREAM = ("ingest", "ground_truth", "schedule", "anchors", "successors", "mesh")
 SECTIONS = ("export", "run.device")
-OUTPUTS = ("colmap", export.TRANSFORMS, "mesh.ply", "mesh.glb", export.FRAME)
+OUTPUTS = ("colmap", export.TRANSFORMS, artifacts.MESH, "mesh.glb", export.FRAME)
 
 
 def world_from_model(gt_dir, w2c: np.ndarray, valid: np.ndarray, frame: str) -> tuple[np.ndarray, str, str, str]:
@@ -101,10 +101,10 @@ def run(ctx) -> None:
 
     import trimesh
 
-    mesh = meshing.load_mesh(ctx.input("mesh") / "mesh.ply")
+    mesh = meshing.load_mesh(ctx.input("mesh") / artifacts.MESH)
     if p.vertex_colours and len(mesh.faces):
         ids = np.flatnonzero(final["optimised"].astype(bool))
-        trainer = evaluation.trainer_from_checkpoint(final_dir / "model.pt", posefree.subset_views(views, ids, w2c),
+        trainer = evaluation.trainer_from_checkpoint(final_dir / artifacts.MODEL, posefree.subset_views(views, ids, w2c),
                                                      ctx.section("run").device)
         colours = evaluation.field_vertex_colours(trainer, np.array(mesh.vertices), np.array(mesh.vertex_normals))
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=colours)

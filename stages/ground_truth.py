@@ -27,20 +27,15 @@ def run(ctx) -> None:
     if len(gt["w2c"]) != len(names):
         raise scenes.SceneError(f"{len(gt['w2c'])} ground-truth poses for {len(names)} views")
     arrays = {k: gt[k] for k in ("w2c", "normalization")}
-    # the layout's own intrinsics, for the error of those the method estimates (when it started from others), and
-    # its masks, for the GT-pose reference surface when the method runs without them
-    own = scenes.layout_reference(ctx.scene_ref, ctx.params) if (
-        meta["intrinsics_source"] != "calibrated" or not ctx.params.load_masks) else {}
-    K = (artifacts.load_views_arrays(ctx.input("ingest"), ["K"])["K"] if meta["intrinsics_source"] == "calibrated"
-         else own.get("K"))
-    if K is not None:
-        arrays["K"] = K
-    if own.get("masks") is not None:
-        arrays["masks"] = own["masks"]
+    # the layout's own intrinsics and masks, whatever the method's ingest reads of them: for the error of the
+    # intrinsics the method estimates, and for the GT-pose reference surface, which is then the same
+    # (one version) for a run on the calibrated, masked layout and one on its photos alone
+    own = scenes.layout_reference(ctx.scene_ref, ctx.params)
+    arrays.update({k: own[k] for k in ("K", "masks") if own[k] is not None})
     if "surface_points" in gt:
         arrays["surface_points"] = gt["surface_points"]
     artifacts.save_ground_truth_poses(ctx.out, arrays)
     scale = float(abs(np.linalg.det(gt["normalization"][:3, :3])) ** (1 / 3))
-    io.save_json(ctx.out / artifacts.GT_META, {"has_poses": True, "has_surface": "surface_points" in gt,
+    io.save_json(ctx.out / artifacts.GT_META, {"has_poses": True, "has_surface": "surface_points" in gt, "names": names,
                                        "units": gt["units"], "units_per_scene_unit": scale})
     ctx.metrics.update(has_poses=True, units=gt["units"])

@@ -17,7 +17,7 @@ from manifoldneus import artifacts, evaluation, export, io, object_region, posef
 Params = evaluation.MeshParams
 UPSTREAM = ("ingest", "anchors", "successors")
 SECTIONS = ("meshing", "run.device")  # run.seed and run.threads do not change a mesh
-OUTPUTS = ("mesh.ply", artifacts.POSES, "colmap")
+OUTPUTS = (artifacts.MESH, artifacts.POSES, "colmap")
 
 
 def run(ctx) -> None:
@@ -26,10 +26,10 @@ def run(ctx) -> None:
     w2c, placed = result["w2c"], result["placed"].astype(bool)
     views = artifacts.load_views(ctx.input("ingest"), w2c, result["K"], result.get("distortion"))
     ids = np.flatnonzero(result["optimised"].astype(bool))
-    trainer = evaluation.trainer_from_checkpoint(final / "model.pt", posefree.subset_views(views, ids, w2c),
+    trainer = evaluation.trainer_from_checkpoint(final / artifacts.MODEL, posefree.subset_views(views, ids, w2c),
                                                  ctx.section("run").device)
     masks = None if views.masks is None else views.masks[ids]
-    found = io.load_json(ctx.input("anchors") / "round_0" / "round.json")["init"].get("object_region")
+    found = io.load_json(ctx.input("anchors") / "round_0" / artifacts.ROUND_META)["init"].get("object_region")
     region = None if found is None else object_region.ObjectRegion.from_json(found)
     object_points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
     mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3], region,

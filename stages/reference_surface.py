@@ -6,7 +6,6 @@ synthesis at the training resolution.
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -15,6 +14,7 @@ import numpy as np
 from manifoldneus import artifacts, evaluation, io, metrics
 from manifoldneus.config import holdout_mask, param
 from manifoldneus.train import Trainer, TrainRun
+from manifoldneus.views import Views
 
 
 @dataclass
@@ -34,6 +34,9 @@ SECTIONS = ("reference_surface", "train", "field", "render", "loss", "run.thread
             *(f"meshing.{k}" for k in ("resolution", "keep_components", "drop_sphere_closure", "cull_by_masks",
                                        "cull_dilation", "cull_unseen", "visibility_size", "preview_size")))
 OUTPUTS = (artifacts.REFERENCE_SURFACE_META,)
+# of the method's ingest only the pixels (and monocular priors): cameras, masks and names come from the layout
+# (ground_truth), so a run on the layout's photos alone shares this version with the calibrated, masked run
+READS = {"ingest": tuple(f"{artifacts.VIEWS}/{a}" for a in artifacts.VIEW_PIXELS)}
 
 
 def input_signature(scene, p) -> str:
@@ -51,15 +54,15 @@ def run(ctx) -> None:
     # ground truth through and through: the layout's poses, calibration and masks (when the method runs without)
     gt = artifacts.load_ground_truth_poses(ctx.input("ground_truth"))
     w2c = gt["w2c"]
-    views = artifacts.load_views(ctx.input("ingest"), w2c, gt.get("K"))
-    if views.masks is None and "masks" in gt:
-        views = dataclasses.replace(views, masks=gt["masks"])
+    pixels = artifacts.load_view_pixels(ctx.input("ingest"))
+    views = Views(pixels["images"], gt["K"], w2c, gt.get("masks"), pixels.get("mono_depth"), pixels.get("mono_normal"),
+                  gt_meta["names"])
     held = holdout_mask(len(views.names), ctx.section("split"))
     run_p = ctx.section("run")
     tp = ctx.section("train")
     run = TrainRun(iters=ctx.params.iters, seed=ctx.params.seed, threads=run_p.threads, device=run_p.device)
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-    ckpt = ctx.checkpoint_dir / "model.pt"
+    ckpt = ctx.checkpoint_dir / artifacts.MODEL
     trainer = Trainer(views, ctx.section("field"), ctx.section("render"), ctx.section("loss"), tp, run=run,
                       train_views=np.flatnonzero(~held), checkpoint_path=ckpt)
     if trainer.resume(ckpt):
@@ -70,7 +73,7 @@ def run(ctx) -> None:
                                                       bar.set_postfix(loss=f"{info['loss']:.4f}"))[-1])
     bar.close()
     seconds = time.time() - started
-    trainer.save(ctx.out / "model.pt")
+    trainer.save(ctx.out / artifacts.MODEL)
     mp = ctx.section("meshing")
     train_ids = np.flatnonzero(~held)
     masks = None if views.masks is None else views.masks[train_ids]

@@ -50,7 +50,7 @@ class Params:
 
 UPSTREAM = ("ingest", "covisibility", "spectral")
 SECTIONS = ("schedule", "split")
-OUTPUTS = (artifacts.SCHEDULE, artifacts.SCHEDULE_META, "schedule.png")
+OUTPUTS = (artifacts.SCHEDULE, artifacts.SCHEDULE_META, artifacts.SCHEDULE_PLOT)
 
 ROUND_COLOURS = ["#8c510a", "#1b9e77", "#969696", "#7570b3", "#e7298a", "#66a61e", "#e6ab02", "#a6761d"]
 
@@ -139,7 +139,7 @@ def run(ctx) -> None:
     cov = artifacts.load_covisibility(ctx.input("covisibility"), ["W", "c"])
     W = np.asarray(cov["W"], np.float64)
     c = np.asarray(cov["c"], np.float64).reshape(-1)
-    spec = io.load_arrays(ctx.input("spectral") / "spectral.zarr", ["phi", "in_component"])
+    spec = io.load_arrays(ctx.input("spectral") / artifacts.SPECTRAL, ["phi", "in_component"])
     phi, in_comp = spec["phi"], spec["in_component"].astype(bool)
     N = W.shape[0]
     if len(names) != N or len(phi) != N:
@@ -213,7 +213,7 @@ def run(ctx) -> None:
                                     "(views scheduled in rounds 0..r); uniform -> 1"),
         "views": per_view,
     })
-    plot_schedule(sched, phi, W, ctx.out / "schedule.png",
+    plot_schedule(sched, phi, W, ctx.out / artifacts.SCHEDULE_PLOT,
                   title=f"{ctx.scene}: {p.strategy}-{p.coverage}"
                         + (f", alpha = {p.alpha}" if p.strategy == "mavos" else "")
                         + (f", K = {p.anchor_percent:g}%, M = {p.successors_per_round}" if p.strategy != "uniform" else "")

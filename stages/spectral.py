@@ -32,15 +32,15 @@ class Params:
 
 UPSTREAM = ("covisibility",)
 SECTIONS = ("spectral",)
-OUTPUTS = ("spectral.zarr", "spectral.json", "spectral.png")
+OUTPUTS = (artifacts.SPECTRAL, "spectral.json", "spectral.png")
 
 
 def load_covisibility(cov_dir):
     """(W float64 [N,N], c float64 [N], components from components.json or None)."""
     arrays = artifacts.load_covisibility(cov_dir, ["W", "c"])
     comps = None
-    if (cov_dir / "components.json").is_file():
-        comps = io.load_json(cov_dir / "components.json")
+    if (cov_dir / artifacts.COMPONENTS).is_file():
+        comps = io.load_json(cov_dir / artifacts.COMPONENTS)
         if isinstance(comps, dict):
             comps = comps.get("components")
     return np.asarray(arrays["W"], np.float64), np.asarray(arrays["c"], np.float64).reshape(-1), comps
@@ -96,7 +96,7 @@ def run(ctx) -> None:
             "and from scheduling: %s", len(excluded), excluded)
     if not np.all(np.isfinite(emb.phi)):
         raise RuntimeError("spectral embedding produced non-finite coordinates")
-    io.save_arrays(ctx.out / "spectral.zarr", {
+    io.save_arrays(ctx.out / artifacts.SPECTRAL, {
         "phi": emb.phi, "eigenvalues": emb.eigenvalues, "in_component": emb.in_component, "c": c,
     }, attrs={"d": emb.d, "d_requested": p.d}, chunk_first=False)
     io.save_json(ctx.out / "spectral.json", {

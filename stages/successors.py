@@ -92,7 +92,7 @@ def run(ctx) -> None:
     prev_dir = ctx.input("anchors") / "round_0"
     prev = artifacts.load_round(prev_dir)
     inputs = posefree.with_intrinsics(inputs, prev["K"], prev.get("distortion"))  # the anchors' (refined, if they were)
-    carry = {k: v for k, v in torch.load(prev_dir / "model.pt", map_location="cpu", weights_only=False).items()
+    carry = {k: v for k, v in torch.load(prev_dir / artifacts.MODEL, map_location="cpu", weights_only=False).items()
              if k in ("field", "background", "cache")}
     w2c, placed = prev["w2c"], prev["placed"].astype(bool)
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)

@@ -1,5 +1,6 @@
-"""The bench on the tiny synthetic scene: all five systems in one sitting, one JSON, one table with
-ratio columns; and README's Results generated from that JSON, between the markers only."""
+"""The bench on the tiny synthetic scene: every system over two seeds in one sitting, one JSON, one
+table with the spread over seeds and ratio columns; and README's Results generated from that JSON,
+between the markers only."""
 from __future__ import annotations
 
 import contextlib
@@ -22,9 +23,9 @@ NEURAL_SYSTEMS = ("manifoldneus", "neus-barf", "neus-colmap", "sfm-all")
 
 @pytest.fixture(scope="module")
 def tiny_bench(tmp_path_factory):
-    """(output dir, printed text) of `bench.py` on the tiny scene with every system."""
+    """(output dir, printed text) of `bench.py` on the tiny scene with every system, seeds 0 and 1."""
     tmp = tmp_path_factory.mktemp("bench")
-    argv = ["--scene", "synthetic", "--artifacts", str(tmp / "artifacts"), "--out-dir", str(tmp / "out")]
+    argv = ["--scene", "synthetic", "--seeds", "0,1", "--artifacts", str(tmp / "artifacts"), "--out-dir", str(tmp / "out")]
     argv += [arg for override in TINY for arg in ("--set", override)]
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
@@ -70,6 +71,30 @@ def test_json_has_every_system_with_finite_pose_errors(tiny_bench):
     assert result["summary"]["front_end_over_pycolmap"] > 0
 
 
+def test_each_figure_is_the_mean_over_seeds_with_its_spread(tiny_bench):
+    _, result = bench_json(tiny_bench[0])
+    assert result["seeds"] == [0, 1] and list(result["per_seed"]) == ["0", "1"]
+    for key, s in result["systems"].items():
+        runs = [result["per_seed"][seed][key] for seed in ("0", "1")]
+        for figure in ("rot_err_deg_mean", "wall_seconds"):
+            values = [r[figure] for r in runs]
+            assert s[figure] == pytest.approx(sum(values) / 2), (key, figure)
+            assert s["spread"][figure]["std"] == pytest.approx(abs(values[0] - values[1]) / math.sqrt(2)), (key, figure)
+    # the seeds train differently (the front-end and pycolmap do not depend on it)
+    ours = [result["per_seed"][seed]["manifoldneus"] for seed in ("0", "1")]
+    assert ours[0]["psnr"] != ours[1]["psnr"]
+    assert ours[0]["stages"]["features"]["fingerprint"] == ours[1]["stages"]["features"]["fingerprint"]
+    # the GT-pose reference surface (Chamfer's yardstick) has a seed of its own: one version per ingest
+    # (the layout's and the photos-alone one), not one per seed
+    store = bench.pipeline.Store(tiny_bench[0].parent / "artifacts", "synthetic")
+    versions = [d for d in store.stage_dir("reference_surface").iterdir() if not d.name.startswith("current")]
+    assert len(versions) == 2, versions
+    # photos alone: the layout's intrinsics and masks dropped, yet every figure scored
+    alone = result["systems"]["photos-alone"]
+    assert alone["psnr"] > 0 and math.isfinite(alone["chamfer_units"])
+    assert alone["stages"]["ingest"]["fingerprint"] != result["systems"]["manifoldneus"]["stages"]["ingest"]["fingerprint"]
+
+
 def test_table_has_one_row_per_system_with_ratio_columns(tiny_bench):
     lines = tiny_bench[1].splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("| system |"))
@@ -80,6 +105,8 @@ def test_table_has_one_row_per_system_with_ratio_columns(tiny_bench):
         assert column in header
     assert [r[0] for r in rows] == [s.label for s in bench.SYSTEMS.values()]
     assert all(len(r) == len(header) for r in rows)
+    ours = rows[0]
+    assert " ± " in ours[header.index("PSNR dB")] and "seeds 0, 1" in tiny_bench[1]
     pycolmap = rows[-1]
     assert [pycolmap[header.index(c)] for c in header if c.endswith("÷ pycolmap")] == ["1.00"] * 3
 

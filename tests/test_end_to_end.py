@@ -143,6 +143,19 @@ def test_neus_barf_preset_reuses_the_front_end(tiny_run):
     assert {s for s, how in again.items() if how == "computed"} == {"schedule"}
 
 
+def test_the_photos_alone_share_the_gt_pose_reference_surface(tiny_run):
+    """The GT-pose reference reads only the pixels of the method's ingest (READS) and the layout's own
+    cameras and masks: a run on the photos alone reuses the calibrated, masked run's version."""
+    artifacts, _ = tiny_run
+    report = pipeline.run("synthetic", until="reference_surface", overrides=TINY, preset="photos-alone",
+                          artifacts=artifacts)
+    assert report["ingest"] == report["ground_truth"] == "computed"  # no masks, K a guess: other bytes
+    assert report["reference_surface"] == "reused"
+    views = io.load_arrays(current(artifacts, "ingest", "photos-alone") / "views.zarr")
+    assert "masks" not in views
+    assert current(artifacts, "reference_surface", "photos-alone") == current(artifacts, "reference_surface")
+
+
 def test_max_rounds_stops_after_the_first_successor_round(tiny_run):
     """successors.max_rounds=1 makes round 1 the last, final round: its length is final_iters, and with
     successors.final_image_size=0 (coarse-to-fine over image resolution) it trains at the images' own

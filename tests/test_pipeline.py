@@ -592,6 +592,18 @@ def test_imports_point_one_way():
             assert not [n for n in names if n.split(".")[0] in forbidden], (path, sorted(names))
 
 
+def test_no_module_edits_sys_path():
+    """The project is installed (pyproject.toml) and the benches run as modules (`python -m bench.X`):
+    no file puts a folder on sys.path to find the code, except profile_step's `--code`, which
+    measures another checkout's package on purpose."""
+    edits = []
+    for path in [pipeline.ROOT / "pipeline.py", *sorted(pipeline.ROOT.glob("[mrsb]*/**/*.py"))]:
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            if "sys.path.insert" in line or "sys.path.append" in line:
+                edits.append(f"{path.relative_to(pipeline.ROOT)}:{n}")
+    assert [e.split(":")[0] for e in edits] == ["bench/profile_step.py"], edits
+
+
 def test_shared_artifacts_are_named_by_their_readers_only():
     """The files several stages read are named in manifoldneus/artifacts.py only (its constants and
     readers, as hloc's one io module): no other module of the package, stage, runner or bench spells
@@ -600,7 +612,9 @@ def test_shared_artifacts_are_named_by_their_readers_only():
 
     names = [artifacts.VIEWS, artifacts.VIEWS_META, artifacts.GT_META, artifacts.FEATURES, artifacts.MATCHES,
              artifacts.COVISIBILITY, artifacts.SCHEDULE, artifacts.SCHEDULE_META, artifacts.INITIAL_POSES, artifacts.POSES,
-             artifacts.REFERENCE_SURFACE_META, artifacts.EVALUATION]
+             artifacts.REFERENCE_SURFACE_META, artifacts.EVALUATION, artifacts.MESH, artifacts.MODEL, artifacts.ROUND_META,
+             artifacts.SPECTRAL, artifacts.COMPONENTS, artifacts.REFERENCE_POSE_METRICS, artifacts.SCHEDULE_PLOT,
+             artifacts.CAMERAS_PLOT]
     for package in ("manifoldneus", "stages", "runner", "bench"):
         for path in sorted((pipeline.ROOT / package).glob("*.py")):
             if path.name == "artifacts.py":
@@ -751,7 +765,7 @@ def test_a_stage_declaring_one_key_of_a_section_is_not_rerun_by_the_others(tmp_p
     enter their fingerprints (the rounds, which read them, do), and reading an undeclared key of
     the section is an error."""
     stages = pipeline.load_stages()
-    assert stages["mesh"].reads()["run"] == {"device"} and stages["anchors"].reads()["run"] is None
+    assert stages["mesh"].keys_read()["run"] == {"device"} and stages["anchors"].keys_read()["run"] is None
     base = pipeline.resolve_params(stages, overrides=TINY)
     other = pipeline.resolve_params(stages, overrides=[*TINY, "run.threads=1"])
     scene = pipeline.resolve_scene("synthetic")
