@@ -784,3 +784,46 @@ def test_a_stage_declaring_one_key_of_a_section_is_not_rerun_by_the_others(tmp_p
     broken = pipeline.Stage("mesh", stages["mesh"].module, (), ("meshing", "run.devices"), ())
     with pytest.raises(pipeline.PipelineError, match=r"declares \['run.devices'\]: no such key"):
         pipeline.stage_params(broken, base)
+
+
+def _another_value(value):
+    """A value of the same type that differs from `value` (None: no simple one)."""
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, (int, float)):
+        return value + 1
+    if isinstance(value, str):
+        return value + "x"
+    if isinstance(value, list) and value:
+        return [*value[:-1], _another_value(value[-1])] if not isinstance(value[-1], str) else value[:-1] or None
+    return None
+
+
+def test_every_key_reaches_exactly_the_stages_that_declare_it():
+    """Change each key of every section, one at a time: the parameters a stage hashes change exactly
+    when it declares that key (its whole section, or the key itself), so no key it does not read can
+    make it stale and none it reads is left out."""
+    import dataclasses
+
+    stages = pipeline.load_stages()
+    base = pipeline.resolve_params(stages, overrides=TINY)
+    before = {name: pipeline.stage_params(stage, base) for name, stage in stages.items()}
+    checked = 0
+    for section, values in base.items():
+        if not dataclasses.is_dataclass(values):  # the profile's and preset's names
+            continue
+        for f in dataclasses.fields(values):
+            other = _another_value(getattr(values, f.name))
+            if other is None:
+                continue
+            try:
+                altered = {**base, section: dataclasses.replace(values, **{f.name: other})}
+            except ParamError:  # out of its range: the next key
+                continue
+            for name, stage in stages.items():
+                reads = stage.keys_read()
+                declared = section in reads and (reads[section] is None or f.name in reads[section])
+                changed = pipeline.stage_params(stage, altered) != before[name]
+                assert changed == declared, (name, f"{section}.{f.name}")
+            checked += 1
+    assert checked > 100
