@@ -408,19 +408,20 @@ def markdown_table(header: list[str], rows: list[list[str]], align: str | None =
     return "\n".join("| " + " | ".join(r) + " |" for r in [header, rule, *rows])
 
 
-def systems_table(result: dict) -> str:
-    """One row per system: pose errors, Chamfer, novel views, time, memory, ratios to pycolmap."""
+def systems_table(result: dict, scene_column: bool = False) -> str:
+    """One row per system: pose errors, Chamfer, novel views, time, memory, ratios to pycolmap (with
+    `scene_column`, the scene first: README puts the scenes' tables one under the other)."""
     systems = result["systems"]
     units = next((s["units"] for s in systems.values() if s.get("units")), "units")
     with_lpips = any(is_number(s.get("lpips")) for s in systems.values())
-    header = ["system", "views", "rotation ° mean / median", f"centre ({units}) mean / median", "PRE_r °", "PRE_t °",
+    header = [*(["scene"] if scene_column else []), "system", "views", "rotation ° mean / median", f"centre ({units}) mean / median", "PRE_r °", "PRE_t °",
               f"Chamfer ({units})", "PSNR dB", "PSNR dB aligned", "SSIM", *(["LPIPS"] if with_lpips else []), "wall s", "peak MiB",
               *(f"{col} ÷ pycolmap" for col, _ in RATIOS)]
     rows = []
     for s in systems.values():
         views = f"{fmt(s['n_valid'], '.0f')}/{fmt(s['n_views'], '.0f')}" if "n_valid" in s else "—"
         rows.append([
-            s["label"], views,
+            *([result["scene"]] if scene_column else []), s["label"], views,
             f"{cell(s, 'rot_err_deg_mean')} / {cell(s, 'rot_err_deg_median')}",
             f"{cell(s, 'center_err_units_mean')} / {cell(s, 'center_err_units_median')}",
             cell(s, "pre_r_deg_mean"), cell(s, "pre_t_deg_mean"), cell(s, "chamfer_units"),
@@ -429,7 +430,7 @@ def systems_table(result: dict) -> str:
             cell(s, "wall_seconds", ".0f"), fmt(s["peak_rss_mib"], ".0f"),
             *(fmt(s["over_pycolmap"][col], ".2f") for col, _ in RATIOS),
         ])
-    return markdown_table(header, rows)
+    return markdown_table(header, rows, align=("ll" if scene_column else "l") + "r" * (len(header) - 1 - scene_column))
 
 
 def stage_system_table(result: dict) -> str:
@@ -457,8 +458,8 @@ def notes(result: dict) -> list[str]:
     out = [f"Mean ± std over the seeds {', '.join(map(str, seeds))} (`run.seed`; std with ddof 1); the ratios are "
            "of the means. Per seed: `per_seed` in the JSON."] if len(seeds) > 1 else []
     out += [
-        "Times: sum of the wall times recorded in the manifests of the stages charged to each system (stage "
-        "table). Versions shared between systems (ingest, the front-end, the pycolmap reference) are computed "
+        "Times: sum of the wall times recorded in the manifests of the stages charged to each system (per stage: "
+        "the bench's stage table and the JSON). Versions shared between systems (ingest, the front-end, the pycolmap reference) are computed "
         f"once and counted for every system that uses them; evaluation stages are never counted. {sitting}",
         "Pose errors after a Sim3 alignment to the ground truth; the NeuS systems over the views they optimise "
         "(held-out views excluded), pycolmap over the views it registers. PRE_r / PRE_t: mean relative pose "

@@ -195,7 +195,8 @@ def pm(s: dict, spec: str = ".3f") -> str:
     return f"{s['mean']:{spec}} ± {s['std']:{spec}}" if s["n"] > 1 else f"{s['mean']:{spec}}"
 
 
-def markdown(result: dict) -> str:
+def markdown(result: dict, targets: bool = True) -> str:
+    """The table of every scene, each scene's rounds and (`targets`) its targets per seed."""
     header = ["scene", "seeds", "init (anchors) deg", "placement deg", "final deg", "sfm-all deg", "pycolmap deg",
               "final centre", "sfm-all centre", "pycolmap centre", "guard fired", "masked PSNR dB", "aligned", "GT-pose PSNR dB (equal iters)", "aligned",
               "sfm-all + NeuS PSNR dB (equal iters)",
@@ -217,7 +218,8 @@ def markdown(result: dict) -> str:
         parts.append(f"{scene}, per round (mean rotation error of the round's views, deg: start -> end): " + "; ".join(
             f"{lab} {pm(v['start_rot_deg'])} -> {pm(v['rot_deg'])}" if v["start_rot_deg"]["n"] else f"{lab} {pm(v['rot_deg'])}"
             for lab, v in per.items()))
-        parts.append(f"{scene} targets: " + "; ".join(f"{t['target']}: {target_text(t)}" for t in sc["targets"]))
+        if targets:
+            parts.append(f"{scene} targets: " + "; ".join(f"{t['target']}: {target_text(t)}" for t in sc["targets"]))
     return "\n\n".join(parts)
 
 

@@ -132,21 +132,38 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
             + ". All figures: [Current results](#current-results).")
 
 
+def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
+    """The per-system bench of every scene as one table (a scene column), the provenance of each
+    scene's JSON above it and the footnotes once below (those that differ between scenes, each)."""
+    lines = [provenance(path, result, root).replace("_Measured", f"_{result['scene']}: measured", 1)
+             for path, result in shown]
+    tables = [bench.systems_table(result, scene_column=True).splitlines() for _, result in shown]
+    if len({t[0] for t in tables}) == 1:  # the same columns: one table
+        table = "\n".join([*tables[0], *(row for t in tables[1:] for row in t[2:])])
+    else:
+        table = "\n\n".join("\n".join(t) for t in tables)
+    notes = list(dict.fromkeys(n for _, result in shown for n in bench.notes(result)))
+    footnotes = "\n".join(f"{i}. {n}" for i, n in enumerate(notes, 1))
+    return "\n".join(lines) + f"\n\n{table}\n\n{footnotes}"
+
+
 def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
-    """The generated body: per scene, the provenance line, the systems table, its notes, the stage table."""
+    """The generated body: every scene's per-system bench (one table), then the refinement bench."""
     parts = [GENERATED_BY]
     scenes = latest_results(bench_dir)
+    shown = []
     for scene, (path, result) in scenes.items():
-        parts.append(f"### {scene}")
         if result is None:
-            parts.append(f"`{rel(path, root)}` predates the per-system bench: run `make bench SCENE={scene}`.")
-            continue
-        if refine_newer_than(bench_dir, path):
-            parts.append(f"`{rel(path, root)}` was measured before the joint rounds' correspondence term "
+            parts.append(f"{scene}: `{rel(path, root)}` predates the per-system bench: run `make bench SCENE={scene}`.")
+        elif refine_newer_than(bench_dir, path):
+            parts.append(f"{scene}: `{rel(path, root)}` was measured before the joint rounds' correspondence term "
                          f"(docs/REFINEMENT.md): its figures are not what the code gives now, so they are not shown "
-                         f"here; `make bench SCENE={scene}` measures them again. The refinement bench below is current.")
-            continue
-        parts += [provenance(path, result, root), bench.comparison_markdown(result, with_stages=False)]
+                         f"here; `make bench SCENE={scene}` measures them again.")
+        else:
+            shown.append((path, result))
+    if shown:
+        parts.insert(1, "### Every system (`make bench`)")
+        parts.insert(2, systems_markdown(shown, root))
     if not scenes:
         parts.append("No bench results yet: run `make bench`.")
     refine = refine_files(bench_dir)
@@ -159,7 +176,8 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
                   f"_Measured {result['date'].replace('T', ' ')} on {m.get('cpu_model') or m['platform']}, {m['cpus']} "
                   f"CPUs; `{rel(refine[-1], root)}`"
                   + ("; with " + " ".join(f"`--set {o}`" for o in result["overrides"]) if result.get("overrides") else "")
-                  + kernel_note(result) + "._", bench_refine.markdown(result)]
+                  + kernel_note(result) + "; each seed's targets: `python -m bench.bench_refine` prints them._",
+                  bench_refine.markdown(result, targets=False)]
         if missing:
             parts.append("The sfm-all columns show \"-\": this JSON predates the `sfm-all` preset; "
                          "`make bench-refine` measures them.")
