@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from manifoldneus.artifacts import MESH, load_evaluation, load_schedule_meta
-from manifoldneus.export import FRAME  # `artifacts` is the folder here
+from manifoldneus.artifacts import MESH, load_evaluation, load_schedule_meta  # `artifacts` is the folder here
+from manifoldneus.export import FRAME
 from manifoldneus.scenes import resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, DEFAULT_PARAMS, PipelineError
 from runner.execute import RunReport, _refuse_damaged, cli_hint

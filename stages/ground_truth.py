@@ -30,8 +30,11 @@ def run(ctx) -> None:
     # the layout's own intrinsics and masks, whatever the method's ingest reads of them: for the error of the
     # intrinsics the method estimates, and for the GT-pose reference surface, which is then the same
     # (one version) for a run on the calibrated, masked layout and one on its photos alone
-    own = scenes.layout_reference(ctx.scene_ref, ctx.params)
-    arrays.update({k: own[k] for k in ("K", "masks") if own[k] is not None})
+    if meta["intrinsics_source"] == "calibrated" and ctx.params.load_masks:  # the ingest read them: no second read
+        own = artifacts.load_views_arrays(ctx.input("ingest"), ["K", "masks"][:2 if meta.get("has_masks") else 1])
+    else:
+        own = scenes.layout_reference(ctx.scene_ref, ctx.params)
+    arrays.update({k: own[k] for k in ("K", "masks") if own.get(k) is not None})
     if "surface_points" in gt:
         arrays["surface_points"] = gt["surface_points"]
     artifacts.save_ground_truth_poses(ctx.out, arrays)
