@@ -24,6 +24,7 @@ for the Eikonal loss) asks for ``torch``.
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import logging
 import os
 import sys
@@ -44,7 +45,10 @@ _ext_error: str | None = None
 
 
 def _build_dir() -> Path:
-    return io.cache_root() / f"grid_encoding-torch{torch.__version__.replace('+', '_')}"
+    # one folder per torch version and source: two checkouts of different code on one machine (a
+    # worktree measured beside the main one) each keep their own build
+    digest = hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:10]
+    return io.cache_root() / f"grid_encoding-torch{torch.__version__.replace('+', '_')}-{digest}"
 
 
 def fused_kernel():

@@ -459,6 +459,21 @@ def test_band_weights_interface():
         assert not torch.allclose(f.sdf(x, off), f.sdf(x, torch.ones(10, L)), atol=1e-6)
 
 
+def test_each_kernel_source_builds_in_its_own_folder(tmp_path, monkeypatch):
+    """Two checkouts with different kernel sources on one machine (a worktree of older code measured
+    beside the current one) must not share, and fight over, one build folder."""
+    from manifoldneus import grid_encoding
+
+    here = grid_encoding._build_dir()
+    edited = tmp_path / "grid_encoding.cpp"
+    edited.write_text(grid_encoding._SOURCE.read_text() + "\n// edited\n")
+    monkeypatch.setattr(grid_encoding, "_SOURCE", edited)
+    there = grid_encoding._build_dir()
+    assert there != here and there.parent == here.parent
+    monkeypatch.setattr(grid_encoding, "_SOURCE", Path(grid_encoding.__file__).parent / "csrc" / "grid_encoding.cpp")
+    assert grid_encoding._build_dir() == here
+
+
 def test_a_build_killed_half_way_does_not_hang_later_processes(tmp_path):
     """A build interrupted after torch took its lock file leaves that file behind; a later process
     must still load the kernel (it used to wait on the stale lock forever)."""
