@@ -197,7 +197,6 @@ def main():
         tr.clock = cpu_s  # budget and lr schedule in CPU seconds of this process
     evals = []
     pending = sorted(args.eval_at)
-    train_time = [0.0]
     t_train0 = time.time()
     cpu0 = cpu_s()
     eval_time = [0.0]
@@ -230,13 +229,12 @@ def main():
         return stop[0]
 
     # the budget counts training only; intermediate evaluations are excluded from it
-    summary = {}
     while True:
         remaining = (args.budget_cpu - (cpu_s() - cpu0 - eval_cpu[0])) if args.budget_cpu else \
             (args.budget - (time.time() - t_train0 - eval_time[0]))
         if remaining <= 0 or tr.step >= run.iters or stop[0]:
             break
-        summary = tr.train(time_budget_s=remaining, callback=cb)
+        tr.train(time_budget_s=remaining, callback=cb)
         if args.budget_cpu and stop[0]:
             break
     train_s = time.time() - t_train0 - eval_time[0]
