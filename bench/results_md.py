@@ -137,11 +137,11 @@ def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
     scene's JSON above it and the footnotes once below (those that differ between scenes, each)."""
     lines = [provenance(path, result, root).replace("_Measured", f"_{result['scene']}: measured", 1)
              for path, result in shown]
-    tables = [bench.systems_table(result, scene_column=True).splitlines() for _, result in shown]
-    if len({t[0] for t in tables}) == 1:  # the same columns: one table
-        table = "\n".join([*tables[0], *(row for t in tables[1:] for row in t[2:])])
-    else:
-        table = "\n\n".join("\n".join(t) for t in tables)
+    groups: dict[str, list[str]] = {}  # scenes with the same columns (units) share one table
+    for _, result in shown:
+        header, rule, *rows = bench.systems_table(result, scene_column=True).splitlines()
+        groups.setdefault(header, [header, rule]).extend(rows)
+    table = "\n\n".join("\n".join(t) for t in groups.values())
     notes = list(dict.fromkeys(n for _, result in shown for n in bench.notes(result)))
     footnotes = "\n".join(f"{i}. {n}" for i, n in enumerate(notes, 1))
     return "\n".join(lines) + f"\n\n{table}\n\n{footnotes}"

@@ -101,3 +101,21 @@ def test_a_bench_that_ran_on_the_fallback_kernel_says_so():
     note = results_md.kernel_note({"grid_kernel": "torch: ImportError: no compiler"})
     assert "grid_sample" in note and "ImportError: no compiler" in note
     assert bench.grid_kernel_used() in ("fused",) or bench.grid_kernel_used().startswith("torch: ")
+
+
+def test_scenes_in_the_same_units_share_one_table():
+    """Two scenes in millimetres (scan24, scan24_idr) and one in scene units: two tables, not three
+    (README's line budget), each scene's rows under its table's header."""
+    import copy
+    import json
+
+    mm = json.loads((ROOT / "bench/scan24/2026-11-25.json").read_text())
+    other_mm = copy.deepcopy(mm)
+    other_mm["scene"] = "scan24_idr"
+    unit = json.loads((ROOT / "bench/synthetic/2026-11-26.json").read_text())
+    text = results_md.systems_markdown([(Path("a.json"), mm), (Path("b.json"), unit), (Path("c.json"), other_mm)], ROOT)
+    headers = [line for line in text.splitlines() if line.startswith("| scene |")]
+    assert len(headers) == 2 and "(mm)" in headers[0] and "(unit)" in headers[1]
+    first = text.split(headers[1])[0]
+    assert "| scan24 | ManifoldNeuS" in first and "| scan24_idr | ManifoldNeuS" in first
+    assert "| synthetic |" not in first and "| synthetic | ManifoldNeuS" in text.split(headers[1])[1]
