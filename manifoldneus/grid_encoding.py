@@ -10,7 +10,7 @@ the levels' features side by side, [N, L*C].
 
 Two kernels compute the same thing:
 
-* ``fused`` (CPU): ``csrc/grid_encoding.cpp``, built once per torch version with the machine's C++
+* ``fused`` (CPU): ``csrc/grid_encoding.cpp``, built once per torch version and source with the machine's C++
   compiler (about 30 s, cached under ``~/.cache/manifoldneus``). One pass over the points for all
   levels forward, one backward (threads split the levels, so no atomics); about half the CPU time of
   ``grid_sample`` here (docs/PERFORMANCE.md). Not twice differentiable.
