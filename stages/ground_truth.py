@@ -31,7 +31,7 @@ def run(ctx) -> None:
     # intrinsics the method estimates, and for the GT-pose reference surface, which is then the same
     # (one version) for a run on the calibrated, masked layout and one on its photos alone
     if meta["intrinsics_source"] == "calibrated" and ctx.params.load_masks:  # the ingest read them: no second read
-        own = artifacts.load_views_arrays(ctx.input("ingest"), ["K", "masks"][:2 if meta.get("has_masks") else 1])
+        own = artifacts.load_views_arrays(ctx.input("ingest"), ["K", "masks"] if meta.get("has_masks") else ["K"])
     else:
         own = scenes.layout_reference(ctx.scene_ref, ctx.params)
     arrays.update({k: own[k] for k in ("K", "masks") if own.get(k) is not None})
