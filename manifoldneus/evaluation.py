@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from manifoldneus import cameras, io, meshing, metrics
 from manifoldneus.config import param
@@ -142,51 +141,21 @@ def save_mesh_with_preview(mesh, out_dir: Path, p: MeshParams, stem: str = "mesh
 
 
 def align_test_poses(trainer: Trainer, small: Views, ids, w2c: np.ndarray, p: NovelViewParams, seed: int = 0):
-    """Refine the poses ``w2c`` [N,4,4] of views ``ids`` against the trainer's frozen field (photometric
-    L1, on the foreground with masks plus their silhouette; the views' own images at the trainer's
-    resolution ``small``), all views at once, ``p.align_steps`` Adam steps. Returns (w2c [N,4,4] with
-    those views refined, {view: (rotation change deg, centre change)})."""
-    from manifoldneus.pose_correction import PoseCorrections
-    from manifoldneus.rays import camera_rays
-    from manifoldneus.render import render_rays
-    from manifoldneus.train import lr_factor
+    """Refine the poses ``w2c`` [N,4,4] of views ``ids`` against the trainer's frozen field
+    (:func:`manifoldneus.pose_alignment.align_poses`; the views' own images at the trainer's resolution
+    ``small``), all views at once, ``p.align_steps`` Adam steps. Returns (w2c [N,4,4] with those views
+    refined, {view: (rotation change deg, centre change)})."""
+    from manifoldneus.pose_alignment import align_poses
 
     dev = trainer.device
     ids = np.asarray(ids, int)
-    H, W = trainer.H, trainer.W
-    images = torch.as_tensor(small.float_images()[ids].reshape(len(ids), H * W, 3), device=dev)  # [M,HW,3]
-    masks = None if small.masks is None else torch.as_tensor(small.masks[ids].reshape(len(ids), H * W), device=dev)
+    HW = trainer.H * trainer.W
+    images = torch.as_tensor(small.float_images()[ids].reshape(len(ids), HW, 3), device=dev)  # [M,HW,3]
+    masks = None if small.masks is None else torch.as_tensor(small.masks[ids].reshape(len(ids), HW), device=dev)
     K = torch.as_tensor(small.K[ids], dtype=torch.float32, device=dev)  # [M,3,3]
     start = torch.as_tensor(np.asarray(w2c)[ids, :3, :4], dtype=torch.float32, device=dev)  # [M,3,4]
-    cams = PoseCorrections(start, np.arange(len(ids)), lr=p.align_lr)
-    gen = torch.Generator(device="cpu").manual_seed(seed)
-    frozen = [q for q in list(trainer.field.parameters()) + list(trainer.background.parameters()) if q.requires_grad]
-    for q in frozen:
-        q.requires_grad_(False)
-    try:
-        for step in range(p.align_steps):
-            cams.set_lr(lr_factor(step, p.align_steps, 0, 0.1))
-            flat = torch.randint(0, len(ids) * H * W, (p.align_rays,), generator=gen).to(dev)
-            view, pix = flat // (H * W), flat % (H * W)
-            pose = cams.poses(step)[view]  # [R,3,4]
-            o, d = camera_rays(pix % W, pix // W, K[view], pose)
-            out = render_rays(trainer.field, o, d, trainer.rp, cache=trainer.cache, background=trainer.background,
-                              want_normals=False)
-            err = (out["rgb"] - images[view, pix]).abs().sum(-1)  # [R]
-            if masks is None:
-                loss = err.mean()
-            else:
-                m = masks[view, pix].to(err.dtype)
-                opacity = out["opacity"].clamp(1e-3, 1 - 1e-3)
-                loss = (err * m).sum() / m.sum().clamp_min(1.0) + 0.1 * F.binary_cross_entropy(opacity, m)
-            cams.zero_grad()
-            loss.backward()
-            cams.step()
-    finally:
-        for q in frozen:
-            q.requires_grad_(True)
-    with torch.no_grad():
-        refined = cams.poses(p.align_steps).double().cpu().numpy()  # [M,3,4]
+    refined = align_poses(trainer, start, images, masks, K, steps=p.align_steps, rays=p.align_rays, lr=p.align_lr,
+                          seed=seed).double().cpu().numpy()  # [M,3,4]
     out_w2c = np.array(w2c, dtype=np.float64)
     out_w2c[ids, :3, :4] = refined
     given = np.asarray(w2c, dtype=np.float64)

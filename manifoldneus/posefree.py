@@ -129,6 +129,17 @@ def train_run(run: RunParams, iters: int, pose_lr: float, pose_warmup_frac: floa
                     device=run.device)
 
 
+@dataclasses.dataclass(frozen=True)
+class Polish:
+    """The poses-only polish that closes a round (:func:`manifoldneus.pose_alignment.align_poses`): the
+    round's pose views refined against the field it trained, the field held."""
+
+    steps: int
+    rays: int
+    lr: float
+    translation: bool = True
+
+
 SFM_POINTS = ("object_points", "sight_lines")  # the anchors' SfM points, in initial_poses.zarr
 
 
@@ -148,11 +159,11 @@ class Round:
                  pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
                  pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None,
                  sfm_points: dict | None = None, image_size: int | None = None, kept_ids=None,
-                 kept_frac: float = 0.0):
+                 kept_frac: float = 0.0, polish: Polish | None = None):
         """image_size: longest side the round trains at (None: ``train.image_size``; 0: the images' own).
         kept_ids, kept_frac: the views (global ids) whose rays keep the coarsest ``kept_frac`` of the
         field's bands from the round's start (the gate's progress starts there for them, at 0 for the
-        others); 1 = they see every band."""
+        others); 1 = they see every band. polish: the poses-only polish after the training (None: none)."""
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
@@ -206,6 +217,10 @@ class Round:
             if t.cache is not None and carry.get("cache") is not None:
                 t.cache.load_state_dict(carry["cache"])
         self.w2c_init = np.array(w2c_all)
+        self.start_poses = self.trainer.w2c_init.clone()  # [n,3,4] what the guard compares with and rolls back to
+        self.polish = polish
+        self.pose_local = np.arange(len(self.ids)) if pose_ids is None else np.flatnonzero(
+            np.isin(self.ids, np.asarray(pose_ids, int)))  # the views whose poses move (local indices)
         # sampled every log_every steps; kept in the trainer's checkpoint so a resumed round has them all
         self.trainer.extra_state = {"pose_trace": [], "grad_trace": []}
         self.trainer.recorder = self._record
@@ -229,9 +244,9 @@ class Round:
         t = self.trainer
         if self.corr is None:
             return {"checked": False, "why": "poses not learned"}
-        out = correspondence.guard_check(self.corr, t.w2c_init, t.poses().detach(), self.corr_p)
+        out = correspondence.guard_check(self.corr, self.start_poses, t.poses().detach(), self.corr_p)
         if out["fired"]:
-            t.cams.reset()
+            t.set_poses(self.start_poses)
             log.warning("%s: the pose update raised the held-out %s error from %.4g to %.4g (tolerance %g %%): "
                             "poses rolled back to the round's start", desc, self.corr_p.kind, out["start"], out["end"],
                             100 * self.corr_p.guard_tolerance)
@@ -259,10 +274,32 @@ class Round:
         started = time.time()
         summary = t.train(callback=callback)
         bar.close()
+        if self.polish is not None and self.polish.steps > 0:
+            summary["polish"] = self._polish(log, desc, progress)
         summary["seconds"] = time.time() - started
         summary["resumed_from_step"] = resumed_from  # None: ran from step 0 (the history covers every step either way)
         summary["guard"] = self.guard = self._guard(log, desc)
         return summary
+
+    def _polish(self, log: logging.Logger, desc: str, progress) -> dict:
+        """Every pose view refined against the trained field, held fixed; how far each moved."""
+        from manifoldneus.cameras import camera_centers, rotation_angle_deg
+        from manifoldneus.pose_alignment import align_poses
+
+        t, pp, v = self.trainer, self.polish, torch.as_tensor(self.pose_local, device=self.trainer.device)
+        before = t.poses().detach().clone()  # [n,3,4]
+        after = before.clone()
+        after[v] = align_poses(t, before[v], t.images[v], None if t.masks is None else t.masks[v], t.K[v],
+                               steps=pp.steps, rays=pp.rays, lr=pp.lr, seed=t.run.seed, translation=pp.translation,
+                               progress=progress)
+        t.set_poses(after)
+        b, a = before[v].double().cpu().numpy(), after[v].double().cpu().numpy()  # [m,3,4]
+        turn = rotation_angle_deg(a[:, :, :3] @ b[:, :, :3].transpose(0, 2, 1))  # [m]
+        shift = np.linalg.norm(camera_centers(a) - camera_centers(b), axis=-1)  # [m]
+        log.info("%s: pose polish (%d steps of %d rays, field held) turned the %d views by %.4f deg, moved their "
+                 "centres by %.2e (means)", desc, pp.steps, pp.rays, len(v), turn.mean(), shift.mean())
+        return {"steps": pp.steps, "rays": pp.rays, "lr": pp.lr, "translation": pp.translation,
+                "turn_deg_mean": float(turn.mean()), "shift_mean": float(shift.mean())}
 
     def poses_all(self) -> np.ndarray:
         out = np.array(self.w2c_init)

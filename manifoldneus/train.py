@@ -261,6 +261,13 @@ class Trainer:
         """Current world-to-camera poses [N,3,4] (corrected when poses are learned)."""
         return self.cams.poses(self.step)
 
+    def set_poses(self, w2c: torch.Tensor) -> None:
+        """Make ``w2c`` [N,3,4] the poses the corrections apply to, every correction back to zero: a pose
+        step taken outside the training loop (a round's polish) or undone (the guard's rollback)."""
+        with torch.no_grad():
+            self.w2c_init.copy_(w2c)  # the corrections' own reference to the same tensor
+        self.cams.reset()
+
     def poses_numpy(self) -> np.ndarray:
         with torch.no_grad():
             P = self.poses().cpu().double().numpy()

@@ -51,6 +51,14 @@ class Params:
                                "round's new views, go through the coarse-to-fine gate again: 0 = every view "
                                "restarts coarse-to-fine (the gate read per round), 1 = only the new views do",
                                lo=0.0, hi=1.0)
+    polish_steps: int = param(0, "Poses-only polish closing a round: Adam steps of every round view's pose against "
+                              "the field the round trained, the field held (0 = off; docs/REFINEMENT.md)", lo=0)
+    polish_rays: int = param(4096, "Pose polish: rays per step over the round's views", lo=16)
+    polish_lr: float = param(1e-3, "Pose polish: peak lr of the se(3) corrections (cosine to a tenth)", lo=0.0)
+    polish_translation: bool = param(True, "Pose polish: learn translations too (False: rotations only, which keeps "
+                                     "every camera centre where the round left it)")
+    polish_rounds: str = param("last", "Which rounds the polish closes: the last or every one",
+                               choices=["last", "every"])
     pnp_reproj_px: float = param(3.0, "PnP-RANSAC inlier threshold (px)", lo=0.1)
     max_rounds: int = param(0, "Stop after this many successor rounds (0 = all); later rounds' views stay unplaced "
                             "(the sweeps of bench/sweep.py only read round 1)", lo=0)
@@ -156,7 +164,9 @@ def run(ctx) -> None:
                              carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
                              pose_ids=None if p.refine_placed else new, sfm_points=sfm_points,
                              image_size=p.final_image_size if last and p.final_image_size >= 0 else None,
-                             kept_ids=np.setdiff1d(ids, new), kept_frac=p.regate_kept)
+                             kept_ids=np.setdiff1d(ids, new), kept_frac=p.regate_kept,
+                             polish=posefree.Polish(p.polish_steps, p.polish_rays, p.polish_lr, p.polish_translation)
+                             if last or p.polish_rounds == "every" else None)
         summary = rnd.run(f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt", log=ctx.log, progress=ctx.progress)
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,

@@ -349,6 +349,29 @@ def test_test_time_alignment_undoes_a_held_out_pose_error_against_the_frozen_fie
     assert scored["summary"]["aligned_psnr_masked"] > scored["summary"]["psnr_masked"]
 
 
+def test_a_rotation_only_polish_turns_a_view_back_and_keeps_every_camera_centre(trained_tiny):
+    import roma
+
+    from manifoldneus import cameras
+    from manifoldneus.pose_alignment import align_poses
+
+    views, tr, _ = trained_tiny
+    true = torch.as_tensor(np.asarray(views.w2c)[:, :3, :4], dtype=torch.float32)  # [N,3,4]
+    R = roma.rotvec_to_rotmat(torch.tensor([0.0, 1.0, 0.0]) * math.radians(2.0))
+    start = true.clone()
+    start[2] = R @ true[2]  # view 2 turned by 2 degrees about its own centre: a left rotation keeps C
+    ids = torch.tensor([1, 2])
+    refined = align_poses(tr, start[ids], tr.images[ids], tr.masks[ids], tr.K[ids], steps=150, rays=512, lr=3e-3,
+                          translation=False)
+
+    def turn(a, b):
+        return float(cameras.rotation_angle_deg((a[:3, :3] @ b[:3, :3].T).double().numpy()))
+
+    assert turn(refined[1], true[2]) < 0.5 * turn(start[2], true[2]), turn(refined[1], true[2])
+    C = cameras.camera_centers(refined.double().numpy())
+    assert np.allclose(C, cameras.camera_centers(start[ids].double().numpy()), atol=1e-5)  # no centre moved
+
+
 def test_an_unmasked_trainer_with_the_nerfpp_background_trains_and_reloads_it(tmp_path):
     v = synthetic_views()
     views = Views(v.images, v.K, v.w2c, None)
