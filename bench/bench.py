@@ -37,6 +37,7 @@ import os
 import platform
 import sys
 import time
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -294,6 +295,23 @@ def git_commit() -> str | None:
         return None
 
 
+def resolved_params(overrides=(), params_path: Path | None = None) -> dict:
+    """{preset (``default`` for none): {"section.key": value}}: what every system of the bench resolves
+    its parameters to (the fast profile, params.yaml, the bench's overrides). README compares it with
+    what the checkout resolves to now (``bench/results_md.py``), so figures measured with other
+    defaults are not shown as today's."""
+    from runner.params import read_params_file, resolve_params
+
+    stages = pipeline.load_stages()
+    out = {}
+    defined = {None, *(read_params_file(params_path or pipeline.DEFAULT_PARAMS).get("presets") or {})}
+    for preset in dict.fromkeys(s.preset for s in SYSTEMS.values() if s.preset in defined):  # an older file may lack one
+        resolved = resolve_params(stages, params_path or pipeline.DEFAULT_PARAMS, list(overrides), preset=preset)
+        out[preset or "default"] = {f"{section}.{k}": v for section, values in resolved.items()
+                                    if dataclasses.is_dataclass(values) for k, v in dataclasses.asdict(values).items()}
+    return out
+
+
 def spread(values) -> dict:
     """mean, std (ddof 1; 0 for one value), n, min, max of the numbers among `values`."""
     v = [float(x) for x in values if is_number(x)]
@@ -350,6 +368,7 @@ def run_benches(scenes: list[str], systems: list[System], overrides=(), until=No
             "grid_kernel": grid_kernel_used(),
             "executor": {"name": executor_name, "workers": workers, "scenes": list(scenes)},
             "overrides": list(overrides),
+            "resolved_params": resolved_params(overrides),
             "until": until,
             "seeds": list(seeds or []),
             "total_wall_seconds": round(time.time() - started, 1),

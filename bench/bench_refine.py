@@ -237,6 +237,7 @@ def main(argv=None) -> int:
     ref_seeds = {int(s) for s in args.reference_seeds.split(",")} if args.reference_seeds else {seeds[0]}
     result = {"label": args.label, "date": dt.datetime.now().isoformat(timespec="seconds"),
               "commit": git_commit(), "machine": bench.machine(), "overrides": args.overrides,
+              "resolved_params": bench.resolved_params(args.overrides),
               "scenes": {}}
     path = args.out_dir / "refine" / f"{args.label}-{dt.date.today().isoformat()}.json"
     path.parent.mkdir(parents=True, exist_ok=True)

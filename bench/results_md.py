@@ -103,6 +103,30 @@ def with_missing_summaries(result: dict) -> tuple[dict, bool]:
     return {**result, "scenes": scenes}, missing
 
 
+def changed_defaults(result: dict) -> list[str]:
+    """``section.key`` (with the preset, where only a preset's value changed) of every parameter that
+    the bench resolved to one value and the checkout resolves to another now: its figures are not what
+    the same command gives today. Keys only one side has are left out (a new parameter's default keeps
+    the old behaviour); a JSON without the record (older benches) counts as unchanged."""
+    then = result.get("resolved_params")
+    if not then:
+        return []
+    now = json.loads(json.dumps(bench.resolved_params(result.get("overrides", ()))))  # tuples as JSON lists
+    changed = [(preset, k) for preset, values in then.items() for k, v in values.items()
+               if k in now.get(preset, {}) and now[preset][k] != v]
+    plain = {k for preset, k in changed if preset == "default"}
+    return list(dict.fromkeys(k if k in plain else f"{k} ({preset})" for preset, k in changed))
+
+
+def stale_note(result: dict, what: str) -> str:
+    """A sentence saying that ``what`` was measured with other defaults, naming them; "" when it was not."""
+    changed = changed_defaults(result)
+    if not changed:
+        return ""
+    return (f"{what} was measured with other defaults than the checkout's ({', '.join(changed)}), so its figures "
+            f"are not what the same command gives now")
+
+
 def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
     """README's first-screen result: one sentence from the newest refinement bench (scan24 if it has it)."""
     refine = refine_files(bench_dir)
@@ -129,7 +153,8 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
             f"seed{'s' if len(sc['runs']) > 1 else ''} {seeds}): mean camera rotation error "
             f"{pm(s['final_rot_deg'], '.3f')} deg, against {against}"
             + (f"; held-out masked PSNR {pm(psnr, '.2f')} dB{upper}" if psnr.get("mean") is not None else "")
-            + ". All figures: [Current results](#current-results).")
+            + ". All figures: [Current results](#current-results)."
+            + (f" ({stale_note(result, 'This bench')}.)" if changed_defaults(result) else ""))
 
 
 def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
@@ -155,6 +180,9 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
     for scene, (path, result) in scenes.items():
         if result is None:
             parts.append(f"{scene}: `{rel(path, root)}` predates the per-system bench: run `make bench SCENE={scene}`.")
+        elif changed_defaults(result):
+            parts.append(f"{scene}: {stale_note(result, f'`{rel(path, root)}`')}; not shown here; "
+                         f"`make bench SCENE={scene}` measures it again.")
         elif refine_newer_than(bench_dir, path):
             parts.append(f"{scene}: `{rel(path, root)}` was measured before the joint rounds' correspondence term "
                          f"(docs/REFINEMENT.md): its figures are not what the code gives now, so they are not shown "
@@ -172,6 +200,11 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
 
         result, missing = with_missing_summaries(json.loads(refine[-1].read_text()))
         m = result["machine"]
+        stale = stale_note(result, "This bench")
+        if stale:
+            parts += ["### Refinement (`make bench-refine`: mean ± std over seeds)",
+                      f"`{rel(refine[-1], root)}`: {stale}; `make bench-refine` measures it again."]
+            return "\n\n".join(parts)
         parts += ["### Refinement (`make bench-refine`: mean ± std over seeds)",
                   f"_Measured {result['date'].replace('T', ' ')} on {m.get('cpu_model') or m['platform']}, {m['cpus']} "
                   f"CPUs; `{rel(refine[-1], root)}`"

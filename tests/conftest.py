@@ -28,6 +28,7 @@ TINY = [
     "field.grid_levels=3", "field.grid_max_res=32", "render.cache_res=32",
     "meshing.resolution=48", "evaluate.chamfer_points=4000", "schedule.successors_per_round=4",
     "novel_views.align_steps=40", "novel_views.align_rays=256",
+    "successors.polish_steps=20", "successors.polish_rays=256",
 ]
 
 

@@ -119,3 +119,29 @@ def test_scenes_in_the_same_units_share_one_table():
     first = text.split(headers[1])[0]
     assert "| scan24 | ManifoldNeuS" in first and "| scan24_idr | ManifoldNeuS" in first
     assert "| synthetic |" not in first and "| synthetic | ManifoldNeuS" in text.split(headers[1])[1]
+
+
+def test_a_bench_measured_with_other_defaults_is_not_shown_as_today(tmp_path):
+    """A bench JSON records what every system resolved its parameters to; README shows a scene only
+    while the checkout resolves them the same, and otherwise names the parameters that changed."""
+    import json
+
+    today = json.loads(json.dumps(bench.resolved_params()))
+    assert set(today) == {s.preset or "default" for s in bench.SYSTEMS.values()}
+    current = {"resolved_params": today}
+    assert results_md.changed_defaults(current) == [] and results_md.stale_note(current, "x") == ""
+    assert results_md.changed_defaults({}) == []  # older JSON without the record: nothing to compare
+    older = json.loads(json.dumps(current))
+    older["resolved_params"]["default"]["field.grid_max_res"] = 64
+    older["resolved_params"]["neus-barf"]["gate.lam"] = 0.5
+    older["resolved_params"]["default"]["field.a_key_removed_since"] = 1  # one side only: left out
+    assert results_md.changed_defaults(older) == ["field.grid_max_res", "gate.lam (neus-barf)"]
+    for scene, result in (("scan24", current), ("synthetic", older)):
+        full = json.loads((ROOT / "bench/scan24/2026-11-26.json").read_text())
+        full.update(result, scene=scene)
+        (tmp_path / scene).mkdir()
+        (tmp_path / scene / "2026-11-26.json").write_text(json.dumps(full))
+    text = results_md.results_markdown(tmp_path, tmp_path)
+    assert "| scan24 | ManifoldNeuS" in text and "| synthetic |" not in text
+    assert "synthetic: `synthetic/2026-11-26.json` was measured with other defaults" in text
+    assert "(field.grid_max_res, gate.lam (neus-barf))" in text and "make bench SCENE=synthetic" in text
