@@ -31,13 +31,13 @@ Other scripts and tests use it as ``from bench import bench``; its helpers (``co
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
 import math
 import os
 import platform
 import sys
 import time
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -303,10 +303,11 @@ def resolved_params(overrides=(), params_path: Path | None = None) -> dict:
     from runner.params import read_params_file, resolve_params
 
     stages = pipeline.load_stages()
+    params_path = params_path or pipeline.DEFAULT_PARAMS
     out = {}
-    defined = {None, *(read_params_file(params_path or pipeline.DEFAULT_PARAMS).get("presets") or {})}
+    defined = {None, *(read_params_file(params_path).get("presets") or {})}
     for preset in dict.fromkeys(s.preset for s in SYSTEMS.values() if s.preset in defined):  # an older file may lack one
-        resolved = resolve_params(stages, params_path or pipeline.DEFAULT_PARAMS, list(overrides), preset=preset)
+        resolved = resolve_params(stages, params_path, list(overrides), preset=preset)
         out[preset or "default"] = {f"{section}.{k}": v for section, values in resolved.items()
                                     if dataclasses.is_dataclass(values) for k, v in dataclasses.asdict(values).items()}
     return out

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import json
 import sys
 from pathlib import Path
@@ -103,6 +104,13 @@ def with_missing_summaries(result: dict) -> tuple[dict, bool]:
     return {**result, "scenes": scenes}, missing
 
 
+@functools.lru_cache(maxsize=None)
+def resolved_now(overrides: tuple) -> dict:
+    """What the checkout resolves every system's parameters to, as the bench JSON holds them (tuples as
+    lists); once per set of overrides (README's every scene and the headline ask)."""
+    return json.loads(json.dumps(bench.resolved_params(overrides)))
+
+
 def changed_defaults(result: dict) -> list[str]:
     """``section.key`` (with the preset, where only a preset's value changed) of every parameter that
     the bench resolved to one value and the checkout resolves to another now: its figures are not what
@@ -111,7 +119,7 @@ def changed_defaults(result: dict) -> list[str]:
     then = result.get("resolved_params")
     if not then:
         return []
-    now = json.loads(json.dumps(bench.resolved_params(result.get("overrides", ()))))  # tuples as JSON lists
+    now = resolved_now(tuple(result.get("overrides", ())))
     changed = [(preset, k) for preset, values in then.items() for k, v in values.items()
                if k in now.get(preset, {}) and now[preset][k] != v]
     plain = {k for preset, k in changed if preset == "default"}
@@ -154,7 +162,7 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
             f"{pm(s['final_rot_deg'], '.3f')} deg, against {against}"
             + (f"; held-out masked PSNR {pm(psnr, '.2f')} dB{upper}" if psnr.get("mean") is not None else "")
             + ". All figures: [Current results](#current-results)."
-            + (f" ({stale_note(result, 'This bench')}.)" if changed_defaults(result) else ""))
+            + (f" ({stale}.)" if (stale := stale_note(result, "This bench")) else ""))
 
 
 def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
@@ -180,9 +188,8 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
     for scene, (path, result) in scenes.items():
         if result is None:
             parts.append(f"{scene}: `{rel(path, root)}` predates the per-system bench: run `make bench SCENE={scene}`.")
-        elif changed_defaults(result):
-            parts.append(f"{scene}: {stale_note(result, f'`{rel(path, root)}`')}; not shown here; "
-                         f"`make bench SCENE={scene}` measures it again.")
+        elif stale := stale_note(result, f"`{rel(path, root)}`"):
+            parts.append(f"{scene}: {stale}; not shown here; `make bench SCENE={scene}` measures it again.")
         elif refine_newer_than(bench_dir, path):
             parts.append(f"{scene}: `{rel(path, root)}` was measured before the joint rounds' correspondence term "
                          f"(docs/REFINEMENT.md): its figures are not what the code gives now, so they are not shown "
