@@ -36,7 +36,7 @@ def align_poses(trainer, start: torch.Tensor, images: torch.Tensor, masks: torch
     dev = trainer.device
     M = start.shape[0]
     HW = trainer.H * trainer.W
-    cams = PoseCorrections(start.to(dev), np.arange(M), lr=lr)
+    cams = PoseCorrections(start.to(dev), np.arange(M), lr=lr, translation=translation)
     gen = torch.Generator(device="cpu").manual_seed(seed)
     frozen = [q for q in list(trainer.field.parameters()) + list(trainer.background.parameters()) if q.requires_grad]
     for q in frozen:
@@ -60,8 +60,6 @@ def align_poses(trainer, start: torch.Tensor, images: torch.Tensor, masks: torch
                 loss = (err * m).sum() / m.sum().clamp_min(1.0) + SILHOUETTE_WEIGHT * F.binary_cross_entropy(opacity, m)
             cams.zero_grad()
             loss.backward()
-            if not translation:
-                cams.xi.grad[:, :3] = 0  # (rho, omega): no translation step; Adam's moments of rho stay zero
             cams.step()
             if bar is not None:
                 bar.update(1)

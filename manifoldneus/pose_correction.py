@@ -17,18 +17,22 @@ from manifoldneus.cameras import apply_correction, rotation_angle_deg
 
 class PoseCorrections:
     """Corrections of ``w2c_init`` [N,3,4]; ``trainable`` are the view indices that learn (None or
-    empty: none learn and :meth:`poses` is ``w2c_init``), from step ``start`` on."""
+    empty: none learn and :meth:`poses` is ``w2c_init``), from step ``start`` on. ``translation``
+    False learns rotations only: a correction on the left with no translation part keeps every
+    camera centre where ``w2c_init`` puts it."""
 
     def __init__(self, w2c_init: torch.Tensor, trainable=None, *, start: int = 0, lr: float = 0.0,
-                 weight_decay: float = 0.0):
+                 weight_decay: float = 0.0, translation: bool = True):
         n = w2c_init.shape[0]
         dev = w2c_init.device
         self.w2c_init = w2c_init  # [N,3,4]
         self.start = int(start)
         self.xi = torch.nn.Parameter(torch.zeros(n, 6, device=dev))  # [N,6] (rho, omega)
-        self.mask = torch.zeros(n, 1, device=dev)  # [N,1] 1 = learns
+        self.mask = torch.zeros(n, 6, device=dev)  # [N,6] 1 = this component of this view learns
         if trainable is not None and len(trainable):
             self.mask[torch.as_tensor(np.asarray(trainable, int), dtype=torch.long, device=dev)] = 1.0
+        if not translation:
+            self.mask[:, :3] = 0.0  # rho: zero gradient, so AdamW (no decay on zeros) keeps it at zero
         self.opt = None
         if self.learning:
             self.opt = torch.optim.AdamW([{"params": [self.xi], "lr": lr, "base_lr": lr}], weight_decay=weight_decay)

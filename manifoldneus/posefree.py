@@ -122,9 +122,10 @@ def subset_views(views: Views, ids, w2c_all: np.ndarray) -> Views:
                  pick(views.mono_normal), [views.names[i] for i in ids])
 
 
-def train_run(run: RunParams, iters: int, pose_lr: float, pose_warmup_frac: float, learn_poses: bool) -> TrainRun:
+def train_run(run: RunParams, iters: int, pose_lr: float, pose_warmup_frac: float, learn_poses: bool,
+              learn_translation: bool = True) -> TrainRun:
     """One round's run: its length and pose optimiser (the stage's section), the run's device."""
-    return TrainRun(iters=iters, learn_poses=learn_poses, pose_lr=pose_lr,
+    return TrainRun(iters=iters, learn_poses=learn_poses, pose_lr=pose_lr, learn_translation=learn_translation,
                     pose_warmup=int(round(pose_warmup_frac * iters)), seed=run.seed, threads=run.threads,
                     device=run.device)
 
@@ -159,17 +160,18 @@ class Round:
                  pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
                  pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None,
                  sfm_points: dict | None = None, image_size: int | None = None, kept_ids=None,
-                 kept_frac: float = 0.0, polish: Polish | None = None):
+                 kept_frac: float = 0.0, polish: Polish | None = None, learn_translation: bool = True):
         """image_size: longest side the round trains at (None: ``train.image_size``; 0: the images' own).
         kept_ids, kept_frac: the views (global ids) whose rays keep the coarsest ``kept_frac`` of the
         field's bands from the round's start (the gate's progress starts there for them, at 0 for the
-        others); 1 = they see every band. polish: the poses-only polish after the training (None: none)."""
+        others); 1 = they see every band. polish: the poses-only polish after the training (None: none).
+        learn_translation: False learns rotations only (every camera centre stays at its start)."""
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
         self.distortion_all = inputs.distortion  # [N,4] or None: the lens distortion removed from the views
         self.full_K = self.K_all[self.ids]
-        run = train_run(cfg.run, iters, pose_lr, pose_warmup_frac, learn_poses)
+        run = train_run(cfg.run, iters, pose_lr, pose_warmup_frac, learn_poses, learn_translation)
         gate_p = cfg.gate
         s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids])
         self.corr_p = cfg.correspondence

@@ -95,6 +95,7 @@ class TrainRun:
     learn_poses: bool = False  # learn per-view se(3) corrections of the initial poses
     pose_lr: float = 0.0  # peak AdamW lr of the corrections
     pose_warmup: int = 0  # pose lr warm-up iterations
+    learn_translation: bool = True  # False: the corrections are rotations only (camera centres held)
     seed: int = 0
     threads: int = 0  # torch CPU threads (0 = leave torch's default)
     device: str = "cpu"
@@ -217,7 +218,8 @@ class Trainer:
         self.cache = SDFCache(self.rp.cache_res, self.rp.radius, device=dev) if self.rp.sampler == "cache" else None
         self.cams = PoseCorrections(
             self.w2c_init, (self.train_views if pose_views is None else pose_views) if run.learn_poses else None,
-            start=pose_start, lr=run.pose_lr, weight_decay=self.tp.pose_weight_decay)
+            start=pose_start, lr=run.pose_lr, weight_decay=self.tp.pose_weight_decay,
+            translation=run.learn_translation)
         self._build_optimizers()
         self.step = 0
         self.lr_scale = 1.0

@@ -28,6 +28,8 @@ class Params:
                                    lo=0.0, hi=1.0)
     pose_warmup_frac: float = param(0.1, "Pose lr warm-up as a fraction of a round", lo=0.0, hi=1.0)
     optimise_poses: bool = param(True, "Learn per-view pose corrections")
+    final_translation: bool = param(True, "The last round learns translations too (False: rotations only; its camera "
+                                    "centres stay where the round starts them: with sfm_restart last, sfm-all's)")
     refine_placed: bool = param(True, "A round also refines the poses of the views earlier rounds placed (False: only "
                                 "its new views' poses learn; the earlier ones stay where their round left them)")
     correspondence_weight: float = param(0.01, "Weight of the correspondence term in a successor round's pose loss "
@@ -166,7 +168,8 @@ def run(ctx) -> None:
                              image_size=p.final_image_size if last and p.final_image_size >= 0 else None,
                              kept_ids=np.setdiff1d(ids, new), kept_frac=p.regate_kept,
                              polish=posefree.Polish(p.polish_steps, p.polish_rays, p.polish_lr, p.polish_translation)
-                             if last or p.polish_rounds == "every" else None)
+                             if last or p.polish_rounds == "every" else None,
+                             learn_translation=p.final_translation or not last)
         summary = rnd.run(f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt", log=ctx.log, progress=ctx.progress)
         posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,

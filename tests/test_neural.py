@@ -669,6 +669,31 @@ def test_pose_corrections_own_which_views_learn_and_from_when():
     assert not PoseCorrections(w2c).learning and PoseCorrections(w2c).poses(10) is w2c
 
 
+def test_rotation_only_corrections_turn_views_and_keep_every_camera_centre():
+    from manifoldneus.cameras import camera_centers, rotation_angle_deg
+    from manifoldneus.pose_correction import PoseCorrections
+
+    w2c = torch.as_tensor(np.stack([look_at_w2c(np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 1.0]), np.zeros(3),
+                                                np.array([0.0, 0.0, 1.0]))[:3] for a in np.linspace(0, 6, 4)]),
+                          dtype=torch.float32)
+    target = torch.tensor([0.3, -0.2, 0.5])
+    for translation in (False, True):
+        cams = PoseCorrections(w2c, trainable=[0, 1, 2, 3], lr=0.05, translation=translation)
+        for _ in range(20):  # pull every camera's translation vector and viewing direction
+            cams.zero_grad()
+            p = cams.poses(0)
+            ((p[:, :, 3] - target) ** 2).sum().add(-(p[:, 2, :3] * target).sum()).backward()
+            cams.step()
+        p = cams.poses(0).detach().double().numpy()
+        moved = np.abs(camera_centers(p) - camera_centers(w2c.double().numpy())).max()
+        turned = rotation_angle_deg(p[:, :3, :3] @ np.swapaxes(w2c.double().numpy()[:, :3, :3], 1, 2))
+        assert turned.min() > 0.5  # the rotations learn either way
+        if translation:
+            assert moved > 1e-2
+        else:
+            assert moved < 1e-5 and float(cams.xi[:, :3].abs().max()) == 0.0
+
+
 def test_a_checkpoint_that_does_not_fit_leaves_the_previous_one(tmp_path, monkeypatch):
     """torch.save on a full disk: the partial file is removed, the previous checkpoint stays, and the
     error is an ENOSPC naming the checkpoint (the CLI's one line says so)."""
