@@ -481,9 +481,10 @@ def notes(result: dict) -> list[str]:
         "Times: sum of the wall times recorded in the manifests of the stages charged to each system (per stage: "
         "the bench's stage table and the JSON). Versions shared between systems (ingest, the front-end, the pycolmap reference) are computed "
         f"once and counted for every system that uses them; evaluation stages are never counted. {sitting}",
-        "Pose errors after a Sim3 alignment to the ground truth; the NeuS systems over the views they optimise "
-        "(held-out views excluded), pycolmap over the views it registers. PRE_r / PRE_t: mean relative pose "
-        "errors over view pairs.",
+        "Pose errors after a Sim3 alignment to the ground truth, fitted on the camera centres; the NeuS systems "
+        "over the views they optimise (held-out views excluded), pycolmap over the views it registers. PRE_r / "
+        "PRE_t: mean relative pose errors over view pairs, which no alignment changes (a shift of the centres "
+        "also re-aligns every rotation: compare PRE_r to tell better rotations from a better-fitting alignment).",
         "÷ pycolmap: the system's mean rotation error, mean centre error and wall time divided by pycolmap's; "
         "above 1, pycolmap is better.",
         "Peak memory: the largest peak RSS of the system's stages, measured on the one bench process, so it "

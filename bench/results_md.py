@@ -56,12 +56,6 @@ def refine_files(bench_dir: Path) -> list[Path]:
     return sorted(files, key=lambda p: json.loads(p.read_text())["date"])
 
 
-def refine_newer_than(bench_dir: Path, path: Path) -> bool:
-    """Whether the newest refinement bench is newer than the per-system bench JSON at `path`."""
-    files = refine_files(bench_dir)
-    return bool(files) and json.loads(files[-1].read_text())["date"] > json.loads(path.read_text())["date"]
-
-
 def provenance(path: Path, result: dict, root: Path) -> str:
     """The generated line: when, on what machine, with which non-default options."""
     m = result["machine"]
@@ -135,6 +129,22 @@ def stale_note(result: dict, what: str) -> str:
             f"are not what the same command gives now")
 
 
+def relative_rotations(bench_dir: Path, scene: str) -> str:
+    """The headline's check on its rotation figures: ManifoldNeuS's and SfM-all's mean relative rotation
+    error over view pairs (PRE_r, which the centre-fitted Sim3 does not change) from the scene's newest
+    `make bench`, when the checkout resolves its parameters the same; "" otherwise."""
+    from bench.bench_refine import pm
+
+    _, result = latest_results(bench_dir).get(scene, (None, None))
+    if result is None or changed_defaults(result):
+        return ""
+    pre_r = {k: result["systems"].get(k, {}).get("spread", {}).get("pre_r_deg_mean", {}) for k in ("manifoldneus", "sfm-all")}
+    if any(v.get("mean") is None for v in pre_r.values()):
+        return ""
+    return (f"; relative rotation error over view pairs (PRE_r of `make bench`, which no alignment changes) "
+            f"{pm(pre_r['manifoldneus'], '.3f')} deg against {pm(pre_r['sfm-all'], '.3f')} for SfM on every view")
+
+
 def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
     """README's first-screen result: one sentence from the newest refinement bench (scan24 if it has it)."""
     refine = refine_files(bench_dir)
@@ -153,6 +163,7 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
     against = f"{pm(s['pycolmap_rot_deg'], '.3f')} deg for pycolmap's incremental SfM"
     if sfm_all.get("mean") is not None:
         against += f" and {pm(sfm_all, '.3f')} deg for SfM on every view at once (`--preset sfm-all`)"
+    against += relative_rotations(bench_dir, scene)
     psnr, gt_psnr = s.get("psnr_masked", {}), s.get("gt_pose_psnr_masked", {})
     upper = (f" (NeuS on the ground-truth poses at equal iterations: {pm(gt_psnr, '.2f')} dB"
              f"{', seed ' + str(sc['runs'][0]['seed']) if gt_psnr.get('n') == 1 else ''})"
@@ -190,10 +201,6 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
             parts.append(f"{scene}: `{rel(path, root)}` predates the per-system bench: run `make bench SCENE={scene}`.")
         elif stale := stale_note(result, f"`{rel(path, root)}`"):
             parts.append(f"{scene}: {stale}; not shown here; `make bench SCENE={scene}` measures it again.")
-        elif refine_newer_than(bench_dir, path):
-            parts.append(f"{scene}: `{rel(path, root)}` was measured before the joint rounds' correspondence term "
-                         f"(docs/REFINEMENT.md): its figures are not what the code gives now, so they are not shown "
-                         f"here; `make bench SCENE={scene}` measures them again.")
         else:
             shown.append((path, result))
     if shown:

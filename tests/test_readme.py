@@ -145,3 +145,27 @@ def test_a_bench_measured_with_other_defaults_is_not_shown_as_today(tmp_path):
     assert "| scan24 | ManifoldNeuS" in text and "| synthetic |" not in text
     assert "synthetic: `synthetic/2026-11-26.json` was measured with other defaults" in text
     assert "(field.grid_max_res, gate.lam (neus-barf))" in text and "make bench SCENE=synthetic" in text
+
+
+def test_the_headline_sets_its_rotation_errors_beside_the_alignment_free_ones(tmp_path):
+    """The headline's rotation errors are measured after a Sim3 fitted on the camera centres; beside them
+    it prints ManifoldNeuS's and SfM-all's PRE_r from the scene's `make bench`, while that bench resolves
+    its parameters as the checkout does."""
+    import json
+
+    full = json.loads((ROOT / "bench/scan24/2026-11-26.json").read_text())
+    full["resolved_params"] = json.loads(json.dumps(bench.resolved_params()))
+    refine = json.loads(results_md.refine_files(ROOT / "bench")[-1].read_text())
+    refine["resolved_params"] = full["resolved_params"]
+    (tmp_path / "scan24").mkdir()
+    (tmp_path / "refine").mkdir()
+    (tmp_path / "refine" / "refine.json").write_text(json.dumps(refine))
+    pre_r = {k: full["systems"][k]["spread"]["pre_r_deg_mean"]["mean"] for k in ("manifoldneus", "sfm-all")}
+    for changed in (False, True):
+        if changed:
+            full["resolved_params"]["default"]["field.grid_max_res"] = 64
+        (tmp_path / "scan24" / "2026-11-26.json").write_text(json.dumps(full))
+        text = results_md.headline_markdown(tmp_path, tmp_path)
+        shown = "which no alignment changes" in text
+        assert shown != changed
+        assert all((f"{v:.3f} ± " in text or f"{v:.3f} for" in text) == shown for v in pre_r.values())
