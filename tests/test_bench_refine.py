@@ -39,14 +39,13 @@ def test_refinement_bench_two_seeds(tmp_path, capsys):
     assert s["final_rot_deg"]["std"] == pytest.approx(abs(finals[0] - finals[1]) / 2 ** 0.5)
     assert {t["target"] for t in result["scenes"]["synthetic"]["targets"]} >= {
         "final <= 0.5 x initialisation", "spread over seeds <= 0.02 deg", "final <= 0.85 x sfm-all",
-        "final centre <= sfm-all's"}
+        "final centre <= sfm-all's", "final relative rotation (PRE_r) <= sfm-all's"}
+    # the alignment-free comparison: relative rotations over view pairs, per seed and summarised
+    assert all(r["final"]["pre_r_deg"] > 0 and r["sfm_all"]["pre_r_deg"] > 0 for r in runs)
+    assert s["final_pre_r_deg"]["mean"] == pytest.approx(sum(r["final"]["pre_r_deg"] for r in runs) / 2)
     assert "| synthetic | 0,1 |" in printed and "±" in printed
-    # README's Results: the refinement table, and an older per-system bench named, not shown
+    # README's Results: the refinement table
     from bench import results_md
 
-    scene_dir = tmp_path / "bench" / "scan24"
-    scene_dir.mkdir()
-    (scene_dir / "2020-01-01.json").write_text(json.dumps({"date": "2020-01-01T00:00:00", "systems": {}}))
     md = results_md.results_markdown(tmp_path / "bench", root=tmp_path)
     assert "### Refinement" in md and "| synthetic | 0,1 |" in md
-    assert "was measured before the joint rounds' correspondence term" in md
