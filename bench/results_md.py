@@ -186,7 +186,12 @@ def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
         header, rule, *rows = bench.systems_table(result, scene_column=True).splitlines()
         groups.setdefault(header, [header, rule]).extend(rows)
     table = "\n\n".join("\n".join(t) for t in groups.values())
-    notes = list(dict.fromkeys(n for _, result in shown for n in bench.notes(result)))
+    scenes_of: dict[str, list[str]] = {}  # note -> the scenes it is written for, in table order
+    for _, result in shown:
+        for n in bench.notes(result):
+            scenes_of.setdefault(n, []).append(result["scene"])
+    everywhere = {r["scene"] for _, r in shown}
+    notes = [n if set(sc) == everywhere else f"{', '.join(sc)}: {n}" for n, sc in scenes_of.items()]
     footnotes = "\n".join(f"{i}. {n}" for i, n in enumerate(notes, 1))
     return "\n".join(lines) + f"\n\n{table}\n\n{footnotes}"
 

@@ -119,6 +119,11 @@ def test_scenes_in_the_same_units_share_one_table():
     first = text.split(headers[1])[0]
     assert "| scan24 | ManifoldNeuS" in first and "| scan24_idr | ManifoldNeuS" in first
     assert "| synthetic |" not in first and "| synthetic | ManifoldNeuS" in text.split(headers[1])[1]
+    # a footnote written for some of the scenes names them; one written for all of them does not
+    notes = [line for line in text.splitlines() if line[:1].isdigit()]
+    assert any(n.split(". ", 1)[1].startswith("synthetic: Chamfer against the exact surface") for n in notes)
+    assert any(n.split(". ", 1)[1].startswith("scan24, scan24_idr: Chamfer against the mesh") for n in notes)
+    assert any(n.split(". ", 1)[1].startswith("Mean ± std over the seeds") for n in notes)
 
 
 def test_a_bench_measured_with_other_defaults_is_not_shown_as_today(tmp_path):
