@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import json
 from pathlib import Path
 
 import numpy as np
@@ -77,9 +78,11 @@ def scene_report(scene: str, artifacts: Path, control_deg: float, seed: int = 0)
     sfm = np.asarray(res.w2c, np.float64)
     rng = np.random.default_rng(seed)
     poses = {"sfm-all": sfm, "ground truth": gt}
-    final_version = ours_store.current("successors")
+    final_version, final_seed = ours_store.current("successors"), None
     if final_version:
-        final = load_pose_estimate(ours_store.version_dir("successors", final_version) / "final")
+        version_dir = ours_store.version_dir("successors", final_version)
+        final_seed = json.loads((version_dir / "manifest.json").read_text())["params"]["run"]["seed"]
+        final = load_pose_estimate(version_dir / "final")
         poses["ManifoldNeuS final"] = final["w2c"][ids]
     poses[f"sfm-all turned {control_deg:g} deg about each centre"] = turned(sfm, control_deg, rng)
     poses[f"sfm-all swung {control_deg:g} deg about the object"] = turned(sfm, control_deg, rng,
@@ -92,7 +95,7 @@ def scene_report(scene: str, artifacts: Path, control_deg: float, seed: int = 0)
         rows[label] = {"median_px": float(np.median(e)), "mean_px": float(np.mean(e)),
                        "rot_err_deg": float(np.nanmean(ev["rot_err_deg"])), "pre_r_deg": float(np.mean(ev["pre_r_deg"]))}
     return {"views": len(ids), "tracks": tracks.n_tracks, "observations": len(tracks.view),
-            "final_version": final_version, "poses": rows}
+            "final_version": final_version, "final_seed": final_seed, "poses": rows}
 
 
 def markdown(result: dict) -> str:
