@@ -13,7 +13,7 @@ and two controls made from `sfm-all`'s: every view turned by --control-deg about
 random axis per view), and every view swung by the same angle about the object (the tracks' median
 point), so that it keeps looking at it. A pose set that fits the tracks as well as `sfm-all`'s lies
 where the matches cannot tell it from them; the controls show how much a rotation of that size costs
-in each direction. Prints a table and writes ``<out-dir>/refine/track-residuals-<date>.json``.
+in each direction. Prints a table and writes ``<out-dir>/tracks/track-residuals-<date>.json``.
 """
 from __future__ import annotations
 
@@ -117,7 +117,7 @@ def main(argv=None) -> int:
     result = {"date": dt.datetime.now().isoformat(timespec="seconds"), "commit": bench.git_commit(),
               "control_deg": args.control_deg,
               "scenes": {s: scene_report(s, args.artifacts, args.control_deg) for s in args.scenes.split(",")}}
-    path = args.out_dir / "refine" / f"track-residuals-{dt.date.today().isoformat()}.json"
+    path = args.out_dir / "tracks" / f"track-residuals-{dt.date.today().isoformat()}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     io.save_json(path, result)
     print(markdown(result))

@@ -118,7 +118,7 @@ def test_track_residuals_score_every_pose_set_against_sfm_alls_tracks(tiny_bench
     with contextlib.redirect_stdout(io.StringIO()):
         assert track_residuals.main(["--scenes", "synthetic", "--artifacts", str(art), "--out-dir", str(tmp_path),
                                      "--control-deg", "1"]) == 0
-    [path] = (tmp_path / "refine").glob("track-residuals-*.json")
+    [path] = (tmp_path / "tracks").glob("track-residuals-*.json")
     scene = json.loads(path.read_text())["scenes"]["synthetic"]
     rows = scene["poses"]
     assert scene["final_seed"] == 1 and scene["tracks"] > 20 and list(rows)[:3] == ["sfm-all", "ground truth", "ManifoldNeuS final"]

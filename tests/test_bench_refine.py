@@ -39,7 +39,15 @@ def test_refinement_bench_two_seeds(tmp_path, capsys):
     assert s["final_rot_deg"]["std"] == pytest.approx(abs(finals[0] - finals[1]) / 2 ** 0.5)
     assert {t["target"] for t in result["scenes"]["synthetic"]["targets"]} >= {
         "final <= 0.5 x initialisation", "spread over seeds <= 0.02 deg", "final <= 0.85 x sfm-all",
-        "final centre <= sfm-all's", "final relative rotation (PRE_r) <= sfm-all's"}
+        "final centre <= sfm-all's", "final relative rotation (PRE_r) <= sfm-all's",
+        "Chamfer <= NeuS on sfm-all's poses at equal iterations",
+        "aligned held-out PSNR >= NeuS on sfm-all's poses at equal iterations"}
+    # the surface against NeuS on sfm-all's poses: the seed that trains it, both figures of both
+    surface = {t["target"]: t for t in result["scenes"]["synthetic"]["targets"]}
+    chamfer = surface["Chamfer <= NeuS on sfm-all's poses at equal iterations"]["per_seed"]
+    assert [x["seed"] for x in chamfer] == [0] and chamfer[0]["value"] == runs[0]["chamfer"] > 0
+    assert chamfer[0]["limit"] == runs[0]["sfm_all"]["chamfer"] > 0
+    assert runs[0]["sfm_all"]["psnr_masked_aligned"] > 0 and s["sfm_all_chamfer"]["n"] == 1
     # the alignment-free comparison: relative rotations over view pairs, per seed and summarised
     assert all(r["final"]["pre_r_deg"] > 0 and r["sfm_all"]["pre_r_deg"] > 0 for r in runs)
     assert s["final_pre_r_deg"]["mean"] == pytest.approx(sum(r["final"]["pre_r_deg"] for r in runs) / 2)
