@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from test_end_to_end import TINY
 
-from bench import bench, results_md, track_residuals
+from bench import bench, pose_observability, results_md
 
 POSE_ERRORS = ("rot_err_deg_mean", "rot_err_deg_median", "center_err_units_mean", "center_err_units_median",
                "pre_r_deg_mean", "pre_t_deg_mean")
@@ -111,23 +111,28 @@ def test_table_has_one_row_per_system_with_ratio_columns(tiny_bench):
     assert [pycolmap[header.index(c)] for c in header if c.endswith("÷ pycolmap")] == ["1.00"] * 3
 
 
-def test_track_residuals_score_every_pose_set_against_sfm_alls_tracks(tiny_bench, tmp_path):
-    """bench/track_residuals.py on the bench's artifacts: the mapper's tracks rebuilt, scored under
-    sfm-all's, the ground truth's and the method's poses and two controls of a known rotation."""
+def test_pose_observability_of_the_tracks_and_the_field(tiny_bench, tmp_path):
+    """bench/pose_observability.py on the bench's artifacts: sfm-all's tracks rebuilt and the final field
+    loaded, each scored under sfm-all's, the ground truth's and the method's poses and two controls of
+    a known rotation."""
     art = tiny_bench[0].parent / "artifacts"
     with contextlib.redirect_stdout(io.StringIO()):
-        assert track_residuals.main(["--scenes", "synthetic", "--artifacts", str(art), "--out-dir", str(tmp_path),
-                                     "--control-deg", "1"]) == 0
-    [path] = (tmp_path / "tracks").glob("track-residuals-*.json")
+        assert pose_observability.main(["--scenes", "synthetic", "--artifacts", str(art), "--out-dir", str(tmp_path),
+                                        "--control-deg", "1", "--rays-per-view", "256"]) == 0
+    [path] = (tmp_path / "observability").glob("pose-observability-*.json")
     scene = json.loads(path.read_text())["scenes"]["synthetic"]
-    rows = scene["poses"]
-    assert scene["final_seed"] == 1 and scene["tracks"] > 20 and list(rows)[:3] == ["sfm-all", "ground truth", "ManifoldNeuS final"]
+    rows, field = scene["poses"], scene["field"]
+    assert scene["final_seed"] == 1 and scene["tracks"] > 20
+    assert list(rows)[:3] == ["sfm-all", "ground truth", "ManifoldNeuS final"]
     assert rows["ground truth"]["rot_err_deg"] < 1e-4 and rows["sfm-all"]["rot_err_deg"] > 0
-    turned, swung = rows["sfm-all turned 1 deg about each centre"], rows["sfm-all swung 1 deg about the object"]
     # a degree about each camera's centre moves every track's image: the error grows several-fold; the same
     # degree about the object keeps it in view and costs the tracks less
-    assert turned["median_px"] > 3 * rows["sfm-all"]["median_px"]
-    assert rows["sfm-all"]["median_px"] < swung["median_px"] < turned["median_px"]
+    assert rows["sfm-all turned"]["median_px"] > 3 * rows["sfm-all"]["median_px"]
+    assert rows["sfm-all"]["median_px"] < rows["sfm-all swung"]["median_px"] < rows["sfm-all turned"]["median_px"]
+    # the field was fitted under its final poses: turning them costs its colour loss more than swinging them
+    assert field["final"]["colour_l1"] < field["turned"]["colour_l1"]
+    assert field["swung"]["colour_l1"] < field["turned"]["colour_l1"]
+    assert 0 < scene["swing_over_turn"]["tracks"] < 1 and scene["swing_over_turn"]["field"] < 1
 
 
 def test_partial_runs_do_not_overwrite_the_full_bench(tmp_path):
