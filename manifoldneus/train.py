@@ -404,6 +404,10 @@ class Trainer:
         self.load_state_dict(copy.deepcopy(self._good_state))
         self.events = events
         self.rollbacks = rollbacks
+        # new draws from here (seeded by the run's seed and the rollback count, so a rerun repeats them): with
+        # the restored generators the same batch that broke the step would come back at any lr
+        self.rng.manual_seed(self.run.seed + 1_000_003 * rollbacks)
+        torch.manual_seed(self.run.seed + 2_000_003 * rollbacks)
         self.lr_scale *= self.tp.rollback_lr_factor
         self._good_state["lr_scale"] = self.lr_scale
         self._good_state["rollbacks"] = self.rollbacks

@@ -397,6 +397,14 @@ def test_rollback_on_injected_nan():
     r = tr.train_step(inject_nan=True)
     assert r.get("rollback") and tr.step == 10 and tr.rollbacks == 1
     assert tr.lr_scale == pytest.approx(0.5)
+    # the steps after the rollback draw other rays than the ones before it (a batch that breaks a step at
+    # any lr would break it again), and the same ones in every rerun
+    assert not torch.equal(tr.rng.get_state(), tr._good_state["rng"])
+    again = Trainer(views, fp, rp, LossParams(), tp, run=run)
+    for _ in range(15):
+        again.train_step()
+    again.train_step(inject_nan=True)
+    assert torch.equal(again.rng.get_state(), tr.rng.get_state())
     assert tr.events[-1]["event"] == "rollback"
     for p in tr.field.parameters():
         assert torch.isfinite(p).all()
