@@ -490,6 +490,7 @@ def notes(result: dict) -> list[str]:
         "Peak memory: the largest peak RSS of the system's stages, measured on the one bench process, so it "
         "includes what earlier stages left allocated (an upper bound).",
     ]
+    out += [f"{s['label']} failed ({s['error']}): its row shows no mean." for s in systems.values() if s.get("error")]
     chamfer_refs = {s["chamfer_reference"] for s in systems.values() if s.get("chamfer_reference")}
     if chamfer_refs:
         out.append(f"Chamfer against the {'; '.join(sorted(chamfer_refs))}. pycolmap makes a sparse model, "

@@ -135,6 +135,14 @@ def test_pose_observability_of_the_tracks_and_the_field(tiny_bench, tmp_path):
     assert 0 < scene["swing_over_turn"]["tracks"] < 1 and scene["swing_over_turn"]["field"] < 1
 
 
+def test_a_failed_system_is_named_under_the_table(tiny_bench):
+    _, result = bench_json(tiny_bench[0])
+    assert not any("failed" in n for n in bench.notes(result))
+    result["systems"]["photos-alone"]["error"] = "seed 0: stage successors failed: FloatingPointError: diverged"
+    assert "ManifoldNeuS, photos alone failed (seed 0: stage successors failed: FloatingPointError: diverged): " \
+        "its row shows no mean." in bench.notes(result)
+
+
 def test_partial_runs_do_not_overwrite_the_full_bench(tmp_path):
     full = {"scene": "s", "date": "2026-01-02T10:00:00", "until": None, "systems": dict.fromkeys(bench.SYSTEMS)}
     assert bench.result_path(full, tmp_path).name == "2026-01-02.json"
