@@ -92,10 +92,7 @@ def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_r
     ref = bench.reference_scores(store.version_dir("evaluate_poses", store.current("evaluate_poses")))
     out["pycolmap"] = {"rot_deg": ref.get("rot_err_deg_mean"), "centre": ref.get("center_err_units_mean"),
                        "n_valid": ref.get("n_valid"), "n_views": ref.get("n_views")}
-    nvs = ev.get("novel_views", {}).get("summary", {})
-    out["psnr_masked"] = nvs.get("psnr_masked", nvs.get("psnr"))
-    out["psnr_masked_aligned"] = nvs.get("aligned_psnr_masked", nvs.get("aligned_psnr"))
-    out["chamfer"] = ev.get("geometry", {}).get("chamfer_units")
+    out.update(surface_scores(ev))
     if with_reference:
         refj = load_reference_surface_meta(store.version_dir("reference_surface", store.current("reference_surface")))
         if refj.get("trained"):
@@ -117,12 +114,15 @@ def sfm_all(scene: str, overrides: list[str], iters: int, artifacts: Path, errs)
     store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name, "sfm-all")
     ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
     out = {**errs(ev["poses"][-1]["summary"]), "iters": iters}
-    if iters > 1:
-        nvs = ev.get("novel_views", {}).get("summary", {})
-        out["psnr_masked"] = nvs.get("psnr_masked", nvs.get("psnr"))
-        out["psnr_masked_aligned"] = nvs.get("aligned_psnr_masked", nvs.get("aligned_psnr"))
-        out["chamfer"] = ev.get("geometry", {}).get("chamfer_units")
-    return out
+    return {**out, **surface_scores(ev)} if iters > 1 else out
+
+
+def surface_scores(ev: dict) -> dict:
+    """Held-out masked PSNR (at the given poses and after test-time alignment) and Chamfer of an evaluation."""
+    nvs = ev.get("novel_views", {}).get("summary", {})
+    return {"psnr_masked": nvs.get("psnr_masked", nvs.get("psnr")),
+            "psnr_masked_aligned": nvs.get("aligned_psnr_masked", nvs.get("aligned_psnr")),
+            "chamfer": ev.get("geometry", {}).get("chamfer_units")}
 
 
 def summarise(runs: list[dict]) -> dict:

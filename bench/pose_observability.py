@@ -41,12 +41,11 @@ from manifoldneus import evaluation, io, pose_init, pose_metrics, posefree
 from manifoldneus.artifacts import load_ground_truth_poses
 from manifoldneus.cameras import camera_centers
 from manifoldneus.correspondence import TrackSet, reprojection_px
-from manifoldneus.rays import camera_rays
-from manifoldneus.render import render_rays
+from manifoldneus.pose_alignment import residuals
 
 
-def sfm_all_tracks(store: pipeline.Store, seed: int = 0) -> tuple[list[int], pose_init.InitResult, TrackSet, np.ndarray]:
-    """(training view ids, the mapper's result on all of them, its tracks, K [N,3,3])."""
+def sfm_all_tracks(store: pipeline.Store, seed: int = 0) -> tuple[list[int], pose_init.InitResult, TrackSet]:
+    """(training view ids, the mapper's result on all of them, its tracks)."""
     inputs = posefree.load_inputs(**{s: store.version_dir(s, store.current(s)) for s in posefree.INPUT_STAGES})
     p = pipeline.resolve_params(pipeline.load_stages())["anchors"]
     ids = [int(v) for v in np.flatnonzero(inputs.train_mask)]
@@ -55,7 +54,7 @@ def sfm_all_tracks(store: pipeline.Store, seed: int = 0) -> tuple[list[int], pos
                                           sizes=inputs.sizes, prior_focal=inputs.intrinsics_source != "default",
                                           reproj_px=p.reproj_px, final_ba_loss=p.ba_loss,
                                           final_ba_scale_px=p.ba_loss_px, seed=seed)
-    return ids, res, TrackSet(ids, inputs.views.K, res.obs_view, res.obs_point, res.obs_uv), inputs.views.K
+    return ids, res, TrackSet(ids, inputs.views.K, res.obs_view, res.obs_point, res.obs_uv)
 
 
 def residual_px(tracks: TrackSet, w2c: np.ndarray) -> np.ndarray:
@@ -84,21 +83,19 @@ def turned(w2c: np.ndarray, deg: float, rng: np.random.Generator, about: np.ndar
 @torch.no_grad()
 def field_losses(trainer, w2c: np.ndarray, view: torch.Tensor, pix: torch.Tensor, chunk: int = 8192) -> dict:
     """The frozen field's colour L1 (masked foreground, or every pixel) and silhouette cross-entropy at
-    pixels ``pix`` [R] of the trainer's views ``view`` [R] under poses w2c [M,4,4]."""
+    pixels ``pix`` [R] of the trainer's views ``view`` [R] under poses w2c [M,4,4]: the parts of the
+    loss the pose polish and the test-time alignment minimise."""
     P = torch.as_tensor(w2c[:, :3, :4], dtype=torch.float32, device=trainer.device)  # [M,3,4]
     l1 = weight = bce = 0.0
     for s in range(0, len(view), chunk):
         v, p = view[s:s + chunk], pix[s:s + chunk]
-        o, d = camera_rays(p % trainer.W, p // trainer.W, trainer.K[v], P[v])
-        out = render_rays(trainer.field, o, d, trainer.rp, cache=trainer.cache, background=trainer.background,
-                          want_normals=False)
-        err = (out["rgb"] - trainer.images[v, p]).abs().sum(-1)  # [r]
-        m = torch.ones_like(err) if trainer.masks is None else trainer.masks[v, p].to(err.dtype)  # [r]
-        l1, weight = l1 + float((err * m).sum()), weight + float(m.sum())
-        if trainer.masks is not None:
-            bce += float(torch.nn.functional.binary_cross_entropy(out["opacity"].clamp(1e-3, 1 - 1e-3), m,
-                                                                  reduction="sum"))
-    return {"colour_l1": l1 / max(weight, 1.0), "silhouette_bce": bce / len(view) if trainer.masks is not None else None}
+        err, m, opacity = residuals(trainer, P[v], v, p, trainer.images, trainer.masks, trainer.K)  # [r] each
+        if m is None:
+            l1, weight = l1 + float(err.sum()), weight + len(err)
+        else:
+            l1, weight = l1 + float((err * m).sum()), weight + float(m.sum())
+            bce += float(torch.nn.functional.binary_cross_entropy(opacity, m, reduction="sum"))
+    return {"colour_l1": l1 / max(weight, 1.0), "silhouette_bce": None if trainer.masks is None else bce / len(view)}
 
 
 def field_report(store: pipeline.Store, version: str, control_deg: float, rays_per_view: int, seed: int = 0) -> dict:
@@ -121,7 +118,7 @@ def field_report(store: pipeline.Store, version: str, control_deg: float, rays_p
 def scene_report(scene: str, artifacts: Path, control_deg: float, rays_per_view: int, seed: int = 0) -> dict:
     name = pipeline.resolve_scene(scene).name
     sfm_store, ours_store = pipeline.Store(artifacts, name, "sfm-all"), pipeline.Store(artifacts, name, None)
-    ids, res, tracks, _ = sfm_all_tracks(sfm_store, seed)
+    ids, res, tracks = sfm_all_tracks(sfm_store, seed)
     gt = load_ground_truth_poses(sfm_store.version_dir("ground_truth", sfm_store.current("ground_truth")))["w2c"][ids]
     sfm = np.asarray(res.w2c, np.float64)
     rng = np.random.default_rng(seed)

@@ -23,6 +23,19 @@ from manifoldneus.render import render_rays
 SILHOUETTE_WEIGHT = 0.1  # of the masks' BCE against the colour L1, as the trainer's default mask loss
 
 
+def residuals(trainer, pose: torch.Tensor, view: torch.Tensor, pix: torch.Tensor, images: torch.Tensor,
+              masks: torch.Tensor | None, K: torch.Tensor):
+    """The loss's parts at pixels ``pix`` [R] of views ``view`` [R] seen from poses ``pose`` [R,3,4] through
+    ``trainer``'s field: the colour L1 [R] against images [M,HW,3], the mask [R] (None without masks
+    [M,HW]) and the rendered opacity [R], clamped for the cross-entropy."""
+    o, d = camera_rays(pix % trainer.W, pix // trainer.W, K[view], pose)
+    out = render_rays(trainer.field, o, d, trainer.rp, cache=trainer.cache, background=trainer.background,
+                      want_normals=False)
+    err = (out["rgb"] - images[view, pix]).abs().sum(-1)  # [R]
+    m = None if masks is None else masks[view, pix].to(err.dtype)  # [R]
+    return err, m, out["opacity"].clamp(1e-3, 1 - 1e-3)
+
+
 def align_poses(trainer, start: torch.Tensor, images: torch.Tensor, masks: torch.Tensor | None, K: torch.Tensor, *,
                 steps: int, rays: int, lr: float, seed: int = 0, translation: bool = True,
                 progress=None) -> torch.Tensor:
@@ -47,16 +60,10 @@ def align_poses(trainer, start: torch.Tensor, images: torch.Tensor, masks: torch
             cams.set_lr(lr_factor(step, steps, 0, 0.1))
             flat = torch.randint(0, M * HW, (rays,), generator=gen).to(dev)
             view, pix = flat // HW, flat % HW  # [R], [R]
-            pose = cams.poses(step)[view]  # [R,3,4]
-            o, d = camera_rays(pix % trainer.W, pix // trainer.W, K[view], pose)
-            out = render_rays(trainer.field, o, d, trainer.rp, cache=trainer.cache, background=trainer.background,
-                              want_normals=False)
-            err = (out["rgb"] - images[view, pix]).abs().sum(-1)  # [R]
-            if masks is None:
+            err, m, opacity = residuals(trainer, cams.poses(step)[view], view, pix, images, masks, K)  # [R] each
+            if m is None:
                 loss = err.mean()
             else:
-                m = masks[view, pix].to(err.dtype)  # [R]
-                opacity = out["opacity"].clamp(1e-3, 1 - 1e-3)
                 loss = (err * m).sum() / m.sum().clamp_min(1.0) + SILHOUETTE_WEIGHT * F.binary_cross_entropy(opacity, m)
             cams.zero_grad()
             loss.backward()
