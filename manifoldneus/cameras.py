@@ -229,9 +229,12 @@ def perturb_w2c(w2c: np.ndarray, rot_deg: tuple[float, float], centre_offset: fl
 
 
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    """Geodesic angle of rotation matrices [...,3,3] in degrees."""
+    """Geodesic angle of rotation matrices [...,3,3] in degrees: atan2 of its sine (the skew part) and its
+    cosine (the trace); the arccos of the trace alone is off by ~1e-6 deg near 0 (float64 rounding)."""
+    R = np.asarray(R, dtype=np.float64)
     cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    skew = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    return np.degrees(np.arctan2(0.5 * np.linalg.norm(skew, axis=-1), cos))
 
 
 def intrinsics_scaled(K: np.ndarray, sx: float, sy: float | None = None) -> np.ndarray:

@@ -43,7 +43,8 @@ def align_poses(trainer, start: torch.Tensor, images: torch.Tensor, masks: torch
     resolution (masks [M,HW] or None, intrinsics K [M,3,3]) against ``trainer``'s frozen field:
     ``steps`` Adam steps of ``rays`` rays over all views, se(3) corrections with a peak lr ``lr``
     (cosine to a tenth). ``translation`` False learns rotations only: a correction on the left of a
-    world-to-camera pose that is a pure rotation keeps the camera centre. Returns the poses [M,3,4]."""
+    world-to-camera pose that is a pure rotation keeps the camera centre. Returns the poses [M,3,4] on
+    ``start``'s device."""
     from manifoldneus.train import lr_factor
 
     dev = trainer.device
@@ -76,4 +77,4 @@ def align_poses(trainer, start: torch.Tensor, images: torch.Tensor, masks: torch
         if bar is not None:
             bar.close()
     with torch.no_grad():
-        return cams.poses(steps).detach()
+        return cams.poses(steps).detach().to(start.device)

@@ -300,11 +300,14 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
         return values_eval if keep is None else base.index_copy(0, keep, values_eval)
 
     if field.color_uses_normal:
-        # one SDF pass: autograd gives the per-sample normals the colour network reads
+        # one SDF pass: autograd gives the per-sample normals the colour network reads. Whenever the caller
+        # differentiates the render (training, or poses aligned against a frozen field), the normals keep
+        # their graph: the SDF's graph must outlive this inner gradient.
+        differentiable = torch.is_grad_enabled()
         with torch.enable_grad():
             x_in = x_eval if x_eval.requires_grad else x_eval.detach().requires_grad_(True)
             sdf_e, feat = field._sdf_feat(x_in, bw_eval)
-            (grad,) = torch.autograd.grad(sdf_e.sum(), x_in, create_graph=need_grad)
+            (grad,) = torch.autograd.grad(sdf_e.sum(), x_in, create_graph=differentiable)
         normals_e = F.normalize(grad, dim=-1)
         sdf = scatter(sdf_e, sdf_base).reshape(R, S)
         rgb = _colour_where_weighted(field, sdf, x_in, dirs if keep is None else dirs[keep], feat, normals_e,

@@ -22,7 +22,9 @@ the checkpoint, so a resumed run continues exactly as an uninterrupted one would
 on torch's deterministic algorithms: on the CPU, the backward of an index with repeated entries (the
 pose terms' ``w2c[view]``) otherwise adds with atomics across threads once a batch passes torch's grain
 size, and two runs of one seed drift apart (scan24_idr's masked anchors, 2 threads: final loss 0.19973 vs
-0.19930 after 600 iterations, the same code and inputs).
+0.19930 after 600 iterations, the same code and inputs). On cuda the dense grid levels' ``grid_sample``
+backward has no deterministic version (torch warns once): there one seed gives one result to float
+tolerance, not bit for bit.
 """
 from __future__ import annotations
 
@@ -344,11 +346,11 @@ class Trainer:
         self.rollbacks = int(s.get("rollbacks", 0))
         if self.cache is not None and s.get("cache") is not None:
             self.cache.load_state_dict(s["cache"])
-        if s.get("rng") is not None:
-            self.rng.set_state(s["rng"])
-            torch.set_rng_state(s["torch_rng"])
+        if s.get("rng") is not None:  # generator states are CPU byte tensors; a checkpoint loaded onto cuda moved them
+            self.rng.set_state(s["rng"].cpu())
+            torch.set_rng_state(s["torch_rng"].cpu())
             if s.get("cuda_rng") is not None and self.device.type == "cuda":
-                torch.cuda.set_rng_state_all(s["cuda_rng"])
+                torch.cuda.set_rng_state_all([state.cpu() for state in s["cuda_rng"]])
         self._loss_ema = s.get("loss_ema")
         self.history = list(s.get("history", []))
         self.events = list(s.get("events", []))

@@ -10,8 +10,11 @@ import torch
 import pipeline
 from manifoldneus import artifacts as readers
 from manifoldneus import io
+from conftest import bitwise_on_cpu
 from manifoldneus.train import Trainer
 from tests.test_end_to_end import TINY
+
+pytestmark = bitwise_on_cpu
 
 # a checkpoint every 10 iterations, so the interruption below falls between two of them
 REPRO = [*TINY, "train.ckpt_every=10"]
