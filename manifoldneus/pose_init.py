@@ -7,10 +7,9 @@ camera frame, ``w2c``, pixel centres at +0.5):
 * :func:`init_from_matches` ("matches", the default for the anchors): our verified matches of the
   anchor views (and of the views that bridge them, chosen by ``stages.anchors.init_views``) go into
   a COLMAP database; COLMAP's incremental mapper and bundle adjustment pose them (intrinsics fixed
-  or refined); then the gauge: a similarity that centres the points' median at the origin and
-  scales their robust radius (``gauge_percentile``-th percentile distance from the median, the
-  foreground points when masks exist) to ``gauge_radius`` (0.8), so the object sits inside the unit
-  sphere. Views COLMAP cannot register get a registered neighbour's pose, and the reason.
+  or refined); then the gauge: a similarity that centres the points' robust box at the origin and
+  scales its half diagonal (:func:`manifoldneus.cameras.gauge_from_points`; the foreground points when
+  masks exist) to ``gauge_radius`` (0.8), so the object sits inside the unit sphere. Views COLMAP cannot register get a registered neighbour's pose, and the reason.
 * :func:`identity_init` ("identity", the paper's wording): every view at the same canonical pose.
 * Successors: :func:`place_successor`: COLMAP's absolute pose of a view's matches to already-optimised
   views, their keypoints lifted to 3D (:func:`successor_correspondences`, with depth rendered from the
@@ -130,10 +129,9 @@ def init_from_matches(
     final_ba_loss: str = "cauchy",
     final_ba_scale_px: float = 0.5,
     gauge_radius: float = 0.8,
-    gauge_percentile: float = 95.0,
+    gauge_percentile: float = 99.0,
     masks: Sequence[np.ndarray] | None = None,
     object_min_seen: float = 0.5,
-    object_gauge_percentile: float = 99.0,
     principal_point_p: float | None = None,
     radial_p: float | None = None,
     log: Callable[[str], None] | None = None,
@@ -149,13 +147,13 @@ def init_from_matches(
     guess; principal_point_p, radial_p: see :func:`manifoldneus.sfm.map_views`. final_ba_loss / final_ba_scale_px: the robust loss of a last bundle adjustment after
     COLMAP's (whose global adjustments are plain least squares), "trivial" = none. masks (optional, one [H,W] bool per entry of ``view_ids``): the gauge's robust extent is
     then measured on the points seen mostly inside the foreground (when there are >= 20 of them);
-    without masks, at the ``object_gauge_percentile``-th percentile of the points at least
-    ``object_min_seen`` of the registered views see
+    without masks, on the points at least ``object_min_seen`` of the registered views see
     (:mod:`manifoldneus.object_region`), whose region (ball and support plane, gauge frame) the
     diagnostics carry as ``object_region``.
 
-    Gauge: y = s (x - median(points)), s = gauge_radius / percentile(|x - median|, gauge_percentile):
-    the object sits inside the unit sphere. Views COLMAP does not register (outside its largest model)
+    Gauge (:func:`manifoldneus.cameras.gauge_from_points`): y = s (x - c), c the middle of the points' box
+    between their ``100 - gauge_percentile``-th and ``gauge_percentile``-th percentiles per axis, s maps its
+    half diagonal to gauge_radius: the object sits inside the unit sphere. Views COLMAP does not register (outside its largest model)
     keep the pose of their best-matching registered neighbour (method ``fallback:<id>``) and are listed
     in ``unplaced`` with the reason in ``why_unplaced``.
     """
@@ -195,8 +193,7 @@ def init_from_matches(
         in_mask = object_region.seen_fraction(pts, rec["K"][reg], w2c[reg], sizes_l[reg]) >= object_min_seen
     gpts = pts[in_mask] if in_mask.sum() >= 20 else pts
     if len(gpts) >= 3:
-        frustum = masks is None and in_mask.sum() >= 20
-        s, centre = gauge_from_points(gpts, gauge_radius, object_gauge_percentile if frustum else gauge_percentile)
+        s, centre = gauge_from_points(gpts, gauge_radius, gauge_percentile)
     else:  # no structure: the views look at the origin from identity_init's distance
         s, centre = 1.0, np.zeros(3)
         w2c[:] = identity_init(V)

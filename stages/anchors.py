@@ -87,16 +87,16 @@ class Params:
                                     "initialisation also uses the training views that bridge them along the "
                                     "maximum spanning tree of all training views (their poses are not kept); "
                                     "0 = the anchors' own matches only", lo=0)
-    gauge_radius: float = param(0.8, "Robust radius the anchors' points are scaled to (object in the unit sphere)",
-                                lo=0.1, hi=1.0)
+    gauge_radius: float = param(0.8, "Radius of the sphere the robust box of the anchors' points is scaled into "
+                                "(the object in the unit sphere)", lo=0.1, hi=1.0)
     object_min_seen: float = param(0.5, "Without masks, the object's points are those at least this fraction of the "
                                    "registered views see in their frame (the common frustum); the gauge, the grid box "
                                    "and the mesh's crop are taken from them (manifoldneus/object_region.py)",
                                    lo=0.0, hi=1.0)
-    object_gauge_percentile: float = param(99.0, "Without masks, the percentile of those points' distances mapped to "
-                                           "gauge_radius (with masks: the 95th of the foreground points). Higher "
-                                           "than with masks: an object that fills the frame has parts outside the "
-                                           "common frustum", lo=50.0, hi=100.0)
+    gauge_percentile: float = param(99.0, "The gauge's robust box: per axis, the points between this percentile and "
+                                    "100 minus it (the foreground's with masks, else the common frustum's); its middle "
+                                    "goes to the origin and its half diagonal to gauge_radius (manifoldneus.cameras."
+                                    "gauge_from_points)", lo=50.0, hi=100.0)
     identity_distance: float = param(3.0, "identity init: distance of the canonical camera from the origin", lo=0.5)
     perturb_rot_deg: list[float] = param([0.0, 0.0], "Experiments from a perturbed start (BARF): each anchor's initial "
                                          "rotation is turned by an angle drawn from [lo, hi] deg about a random axis "
@@ -309,7 +309,7 @@ def matches_init(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int],
                                            final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px,
                                            gauge_radius=p.gauge_radius, masks=masks,
                                            object_min_seen=p.object_min_seen,
-                                           object_gauge_percentile=p.object_gauge_percentile,
+                                           gauge_percentile=p.gauge_percentile,
                                            principal_point_p=p.principal_point_p, radial_p=p.radial_p,
                                            seed=env.seed, log=env.log.info)
 

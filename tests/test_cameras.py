@@ -154,3 +154,20 @@ def test_undistortion_inverts_the_lens():
     before = np.abs(blurred(through_lens) - blurred(pinhole))[inner].mean()
     assert after < 0.25 * before, (after, before)
     assert cameras.undistort_image(mask, K, [-1.0, 0, 0, 0], nearest=True).dtype == bool
+
+
+def test_the_gauge_puts_a_lopsided_objects_whole_box_in_its_sphere():
+    """Views see some parts of an object more than others (the synthetic scene's textured top, its base
+    barely): the gauge takes the box of the points, not their median, so the parts the points cover thinly
+    fit the sphere too; a few far outliers (mismatches) move neither its centre nor its scale much."""
+    from manifoldneus import synthetic
+
+    rng = np.random.default_rng(0)
+    surface = synthetic.sample_surface(20000)  # [P,3], radius <= 0.6 about the origin
+    seen_most = surface[surface[:, 2] > 0.1]
+    points = np.concatenate([surface[rng.random(len(surface)) < 0.1], np.repeat(seen_most, 5, 0)])  # [Q,3]
+    s, centre = cameras.gauge_from_points(points, radius=0.8)
+    assert np.linalg.norm(s * (surface - centre), axis=1).max() < 0.82  # the whole object, thin parts too
+    outliers = rng.normal(size=(len(points) // 200, 3)) * 10.0  # 0.5 % of the points, far away
+    s2, centre2 = cameras.gauge_from_points(np.concatenate([points, outliers]), radius=0.8)
+    assert abs(s2 / s - 1) < 0.05 and np.linalg.norm(centre2 - centre) * s < 0.05
