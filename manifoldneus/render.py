@@ -450,8 +450,7 @@ def render_image(field, K, w2c, height: int, width: int, p: RenderParams, *, cac
         o, d = camera_rays(c, r, K, w2c)
         bw = None if band_weights is None else torch.as_tensor(band_weights, dtype=torch.float32,
                                                                 device=device).expand(c.shape[0], -1)
-        need = field.color_uses_normal  # analytic normals need autograd even at inference
-        with torch.set_grad_enabled(need):
+        with torch.no_grad():  # a field whose colour reads normals takes them by autograd inside render_rays
             out = render_rays(field, o, d, p, cache=cache, background=background, band_weights=bw,
                               perturb=False, train=False, want_normals=want_normals)
         # expected t along the unit ray -> z-depth along the optical axis
