@@ -8,8 +8,9 @@ its pose corrections at zero on top of the poses the previous round ended with.
 A round's artifact (`save_round`): ``poses.zarr`` (``w2c`` [N,4,4] for all views, identity where
 ``placed`` is False; ``w2c_init`` the poses the round started from; ``K`` [N,3,3] the intrinsics
 they belong to; ``pose_trace`` [T,N,4,4] and
-``pose_grad_norm`` [T,N] sampled every ``log_every`` iterations, for the easy-view-bias analysis),
-``model.pt`` (the trainer state), ``round.json`` (views, initial-pose methods, losses, timings).
+``pose_grad_norm`` [T,N] sampled every ``log_every`` iterations, for the easy-view-bias analysis; with
+the `reprojection` correspondence term, ``track_points`` [T,3]: its tracks over the round's views triangulated
+under the poses the round ended with), ``model.pt`` (the trainer state), ``round.json`` (views, initial-pose methods, losses, timings).
 """
 from __future__ import annotations
 
@@ -353,9 +354,12 @@ def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> Non
     for k, (P, g) in enumerate(zip(rnd.pose_trace, rnd.grad_trace)):
         trace[k, rnd.ids] = P
         grads[k, rnd.ids] = g
-    lens = {} if rnd.distortion_all is None else {"distortion": rnd.distortion_all}
+    extra = {} if rnd.distortion_all is None else {"distortion": rnd.distortion_all}
+    if isinstance(rnd.corr, correspondence.ReprojectionLoss):  # the structure of every view of the round, for the mesh's crop
+        X = rnd.corr.tr.triangulate(w2c[rnd.ids])  # [T,3]
+        extra["track_points"] = X[np.isfinite(X).all(1)]
     io.save_arrays(out_dir / artifacts.POSES, {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed, "K": rnd.K_all,
                                      "optimised": np.isin(np.arange(n_views), rnd.ids),
-                                     "pose_trace": trace, "pose_grad_norm": grads, **lens}, chunk_first=False)
+                                     "pose_trace": trace, "pose_grad_norm": grads, **extra}, chunk_first=False)
     rnd.trainer.save(out_dir / artifacts.MODEL)
     io.save_json(out_dir / artifacts.ROUND_META, info)

@@ -6,9 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 import pipeline
 from manifoldneus import artifacts, cameras, io, meshing, object_region, pose_metrics, synthetic
+from stages import mesh as mesh_stage
 from tests.conftest import TINY
 
 N_VIEWS = 20
@@ -146,6 +148,10 @@ def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_i
     points = poses["object_points"]
     assert len(points) >= 20 and region.contains(points, -0.05 * region.radius).mean() > 0.9
     # the mesh of the (tiny) model keeps to the region and to the points' silhouettes
+    final = artifacts.load_round(store.version_dir("successors", store.current("successors")) / "final")
+    used = np.flatnonzero(final["optimised"].astype(bool))
+    views = artifacts.load_views(store.version_dir("ingest", store.current("ingest")), final["w2c"], final["K"])
+    final_points = mesh_stage.object_points_of(final, views, used, 0.5)
     mesh = trimesh.load(store.version_dir("mesh", store.current("mesh")) / "mesh.ply", process=False)
     if len(mesh.faces):
         V = np.asarray(mesh.vertices)
@@ -155,11 +161,37 @@ def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_i
         world = s * V @ R.T + t
         low = world[:, 2] < synthetic.FLOOR_Z + 0.02
         assert world[:, 2].min() > synthetic.FLOOR_Z - 0.02 and np.linalg.norm(world[low, :2], axis=1).max(initial=0) < 0.7
-        final = artifacts.load_round(store.version_dir("successors", store.current("successors")) / "final")
-        used = np.flatnonzero(final["optimised"].astype(bool))
-        silhouettes = meshing.point_silhouettes(points, final["K"][used], final["w2c"][used], (128, 128))
+        # and within the silhouettes of the final round's points (its tracks over every view it trained)
+        silhouettes = meshing.point_silhouettes(final_points, final["K"][used], final["w2c"][used], (128, 128))
         assert len(meshing.cull_by_masks(mesh, final["K"][used], final["w2c"][used], silhouettes, dilation=12,
-                                         min_fraction=0.9).vertices) == len(V)  # and within the points' silhouettes
+                                         min_fraction=0.9).vertices) == len(V)
+
+
+def test_the_mesh_crops_to_the_final_rounds_points_which_cover_more_of_the_object(on_a_floor):
+    """The mesh's silhouettes come from the final round's tracks over all its views, triangulated under its
+    poses: the anchors' points cover only what the anchors' views see."""
+    store = on_a_floor
+    final = artifacts.load_round(store.version_dir("successors", store.current("successors")) / "final")
+    used = np.flatnonzero(final["optimised"].astype(bool))
+    views = artifacts.load_views(store.version_dir("ingest", store.current("ingest")), final["w2c"], final["K"])
+    final_points = mesh_stage.object_points_of(final, views, used, 0.5)
+    anchors = store.version_dir("anchors", store.current("anchors"))
+    anchor_points = io.load_arrays(anchors / "initial_poses.zarr")["object_points"]
+    region = object_region.ObjectRegion.from_json(io.load_json(anchors / "round_0" / "round.json")["init"]["object_region"])
+    assert len(final_points) > len(anchor_points) >= 20
+    assert region.contains(final_points, -0.05 * region.radius).mean() > 0.9  # the object's, not the floor's
+    # in the world frame: the final round's points lie on the object and reach more of its surface
+    al = pose_metrics.evaluate_poses(final["w2c"], synthetic.camera_poses(N_VIEWS), valid=final["placed"].astype(bool))
+    s, R, t = al["alignment"]["s"], np.asarray(al["alignment"]["R"]), np.asarray(al["alignment"]["t"])
+    surf = synthetic.sample_surface(3000, seed=2)
+    surf = surf[surf[:, 2] > synthetic.FLOOR_Z + 0.05]
+    reach = {}
+    for name, pts in (("anchors", anchor_points), ("final", final_points)):
+        d_surf, _ = cKDTree(s * pts @ R.T + t).query(surf)
+        reach[name] = (d_surf < 0.1).mean()
+    d_on, _ = cKDTree(surf).query(s * final_points @ R.T + t)
+    assert np.median(d_on) < 0.03, np.median(d_on)
+    assert reach["final"] > reach["anchors"], reach
 
 
 def test_sight_lines_clear_what_stands_between_a_camera_and_its_points():
