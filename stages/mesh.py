@@ -54,5 +54,4 @@ def object_points_of(result: dict, views, ids: np.ndarray, min_seen: float) -> n
     if points is None:
         return None
     sizes = np.tile(np.asarray(views.images.shape[1:3]), (len(ids), 1))  # [N,2] (H, W)
-    seen = object_region.seen_fraction(points, views.K[ids], result["w2c"][ids], sizes) if len(points) else np.zeros(0)
-    return points[seen >= min_seen]
+    return points[object_region.seen_fraction(points, views.K[ids], result["w2c"][ids], sizes) >= min_seen]

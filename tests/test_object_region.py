@@ -111,6 +111,14 @@ def test_the_silhouettes_of_the_points_drop_a_textureless_table_and_keep_the_obj
     assert kept(silhouettes, 1.0)[0] < 0.8 * on_ball.sum()
 
 
+def _final_round_points(store):
+    """The final round, its trained views and the points the mesh stage crops to (common frustum 0.5)."""
+    final = artifacts.load_round(store.version_dir("successors", store.current("successors")) / "final")
+    used = np.flatnonzero(final["optimised"].astype(bool))
+    views = artifacts.load_views(store.version_dir("ingest", store.current("ingest")), final["w2c"], final["K"])
+    return final, used, mesh_stage.object_points_of(final, views, used, 0.5)
+
+
 @pytest.fixture(scope="module")
 def on_a_floor(tmp_path_factory):
     root = tmp_path_factory.mktemp("floor")
@@ -148,10 +156,7 @@ def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_i
     points = poses["object_points"]
     assert len(points) >= 20 and region.contains(points, -0.05 * region.radius).mean() > 0.9
     # the mesh of the (tiny) model keeps to the region and to the points' silhouettes
-    final = artifacts.load_round(store.version_dir("successors", store.current("successors")) / "final")
-    used = np.flatnonzero(final["optimised"].astype(bool))
-    views = artifacts.load_views(store.version_dir("ingest", store.current("ingest")), final["w2c"], final["K"])
-    final_points = mesh_stage.object_points_of(final, views, used, 0.5)
+    final, used, final_points = _final_round_points(store)
     mesh = trimesh.load(store.version_dir("mesh", store.current("mesh")) / "mesh.ply", process=False)
     if len(mesh.faces):
         V = np.asarray(mesh.vertices)
@@ -171,10 +176,7 @@ def test_the_mesh_crops_to_the_final_rounds_points_which_cover_more_of_the_objec
     """The mesh's silhouettes come from the final round's tracks over all its views, triangulated under its
     poses: the anchors' points cover only what the anchors' views see."""
     store = on_a_floor
-    final = artifacts.load_round(store.version_dir("successors", store.current("successors")) / "final")
-    used = np.flatnonzero(final["optimised"].astype(bool))
-    views = artifacts.load_views(store.version_dir("ingest", store.current("ingest")), final["w2c"], final["K"])
-    final_points = mesh_stage.object_points_of(final, views, used, 0.5)
+    final, used, final_points = _final_round_points(store)
     anchors = store.version_dir("anchors", store.current("anchors"))
     anchor_points = io.load_arrays(anchors / "initial_poses.zarr")["object_points"]
     region = object_region.ObjectRegion.from_json(io.load_json(anchors / "round_0" / "round.json")["init"]["object_region"])
