@@ -314,15 +314,35 @@ def lift_points(
     return X
 
 
-def gauge_from_points(points: np.ndarray, radius: float = 0.8, percentile: float = 99.0) -> tuple[float, np.ndarray]:
-    """Scale s and centre c of the gauge y = s (x - c): c the middle of the points' robust box (per axis,
-    the ``100 - percentile``-th to ``percentile``-th percentiles), s maps its half diagonal to ``radius``, so
-    the whole box lies inside that sphere (the unit-sphere gauge of the pose-free rounds,
-    ``pose_init.init_from_matches``). A box, not a median and a percentile distance: the views that
-    triangulate the points see some parts of an object more than others, and a median-centred radius left
-    the rest outside the unit sphere (the synthetic scene's anchors: 14 % of its surface; docs/REFINEMENT.md)."""
-    lo, hi = np.percentile(np.asarray(points, np.float64), [100.0 - percentile, percentile], axis=0)  # [3], [3]
-    return radius / max(0.5 * float(np.linalg.norm(hi - lo)), 1e-12), 0.5 * (lo + hi)
+def gauge_from_points(points: np.ndarray, radius: float = 0.8, percentile: float = 99.0,
+                      centre: str = "median") -> tuple[float, np.ndarray]:
+    """Scale s and centre c of the gauge y = s (x - c): s maps the half diagonal of the points' robust box (per
+    axis, the ``100 - percentile``-th to ``percentile``-th percentiles) to ``radius``. A box, not a percentile
+    distance, for the scale: the views that triangulate the points see some parts of an object more than
+    others, and a median-centred radius left the rest outside the unit sphere (the synthetic scene's anchors:
+    14 % of its surface; docs/REFINEMENT.md).
+
+    centre="box": c is the box's middle (the whole box within ``radius``). centre="median": c is the points'
+    median, where the views see most, moved towards the box's middle only as far as it takes to keep the whole
+    box inside the unit sphere; the rounds do better with it there (docs/REFINEMENT.md, "The gauge's centre")."""
+    pts = np.asarray(points, np.float64)
+    lo, hi = np.percentile(pts, [100.0 - percentile, percentile], axis=0)  # [3], [3]
+    s = radius / max(0.5 * float(np.linalg.norm(hi - lo)), 1e-12)
+    middle = 0.5 * (lo + hi)
+    if centre == "box":
+        return s, middle
+    if centre != "median":
+        raise ValueError(f"gauge centre {centre!r}: 'median' or 'box'")
+    median = np.median(pts, axis=0)
+    # c(t) = median + t d keeps corner a inside the sphere of radius 1/s where |a - median - t d| <= 1/s: t at
+    # least the quadratic's smaller root; t = 1 (the middle) keeps every corner in, as radius <= 1.
+    d = middle - median
+    corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), -1).reshape(-1, 3) - median  # [8,3]
+    a, b, c = d @ d, corners @ d, (corners ** 2).sum(1) - s ** -2.0
+    if a < 1e-24:
+        return s, median
+    t = (b - np.sqrt(np.maximum(b * b - a * c, 0.0))) / a  # [8] smaller roots
+    return s, median + float(np.clip(t.max(), 0.0, 1.0)) * d
 
 
 def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:

@@ -7,9 +7,10 @@ camera frame, ``w2c``, pixel centres at +0.5):
 * :func:`init_from_matches` ("matches", the default for the anchors): our verified matches of the
   anchor views (and of the views that bridge them, chosen by ``stages.anchors.init_views``) go into
   a COLMAP database; COLMAP's incremental mapper and bundle adjustment pose them (intrinsics fixed
-  or refined); then the gauge: a similarity that centres the points' robust box at the origin and
-  scales its half diagonal (:func:`manifoldneus.cameras.gauge_from_points`; the foreground points when
-  masks exist) to ``gauge_radius`` (0.8), so the object sits inside the unit sphere. Views COLMAP cannot register get a registered neighbour's pose, and the reason.
+  or refined); then the gauge: a similarity that puts the points' median at the origin (moved towards
+  their robust box's middle as far as keeps the box in the unit sphere) and scales the box's half diagonal
+  (:func:`manifoldneus.cameras.gauge_from_points`; the foreground points when masks exist) to
+  ``gauge_radius`` (0.8), so the object sits inside the unit sphere. Views COLMAP cannot register get a registered neighbour's pose, and the reason.
 * :func:`identity_init` ("identity", the paper's wording): every view at the same canonical pose.
 * Successors: :func:`place_successor`: COLMAP's absolute pose of a view's matches to already-optimised
   views, their keypoints lifted to 3D (:func:`successor_correspondences`, with depth rendered from the
@@ -130,6 +131,7 @@ def init_from_matches(
     final_ba_scale_px: float = 0.5,
     gauge_radius: float = 0.8,
     gauge_percentile: float = 99.0,
+    gauge_centre: str = "median",
     masks: Sequence[np.ndarray] | None = None,
     object_min_seen: float = 0.5,
     principal_point_p: float | None = None,
@@ -151,9 +153,10 @@ def init_from_matches(
     (:mod:`manifoldneus.object_region`), whose region (ball and support plane, gauge frame) the
     diagnostics carry as ``object_region``.
 
-    Gauge (:func:`manifoldneus.cameras.gauge_from_points`): y = s (x - c), c the middle of the points' box
-    between their ``100 - gauge_percentile``-th and ``gauge_percentile``-th percentiles per axis, s maps its
-    half diagonal to gauge_radius: the object sits inside the unit sphere. Views COLMAP does not register (outside its largest model)
+    Gauge (:func:`manifoldneus.cameras.gauge_from_points`): y = s (x - c), s maps the half diagonal of the
+    points' box between their ``100 - gauge_percentile``-th and ``gauge_percentile``-th percentiles per axis to
+    gauge_radius, c their median (``gauge_centre``, pulled towards the box's middle as far as keeps the box in
+    the unit sphere) or the box's middle: the object sits inside the unit sphere. Views COLMAP does not register (outside its largest model)
     keep the pose of their best-matching registered neighbour (method ``fallback:<id>``) and are listed
     in ``unplaced`` with the reason in ``why_unplaced``.
     """
@@ -193,7 +196,7 @@ def init_from_matches(
         in_mask = object_region.seen_fraction(pts, rec["K"][reg], w2c[reg], sizes_l[reg]) >= object_min_seen
     gpts = pts[in_mask] if in_mask.sum() >= 20 else pts
     if len(gpts) >= 3:
-        s, centre = gauge_from_points(gpts, gauge_radius, gauge_percentile)
+        s, centre = gauge_from_points(gpts, gauge_radius, gauge_percentile, gauge_centre)
     else:  # no structure: the views look at the origin from identity_init's distance
         s, centre = 1.0, np.zeros(3)
         w2c[:] = identity_init(V)

@@ -94,9 +94,13 @@ class Params:
                                    "and the mesh's crop are taken from them (manifoldneus/object_region.py)",
                                    lo=0.0, hi=1.0)
     gauge_percentile: float = param(99.0, "The gauge's robust box: per axis, the points between this percentile and "
-                                    "100 minus it (the foreground's with masks, else the common frustum's); its middle "
-                                    "goes to the origin and its half diagonal to gauge_radius (manifoldneus.cameras."
+                                    "100 minus it (the foreground's with masks, else the common frustum's); its half "
+                                    "diagonal goes to gauge_radius (manifoldneus.cameras."
                                     "gauge_from_points)", lo=50.0, hi=100.0)
+    gauge_centre: str = param("median", "What goes to the gauge's origin: the points' median (where the views see "
+                              "most), moved towards the box's middle only as far as keeps the box inside the unit "
+                              "sphere; or the box's middle (docs/REFINEMENT.md, \"The gauge's centre\")",
+                              choices=["median", "box"])
     identity_distance: float = param(3.0, "identity init: distance of the canonical camera from the origin", lo=0.5)
     perturb_rot_deg: list[float] = param([0.0, 0.0], "Experiments from a perturbed start (BARF): each anchor's initial "
                                          "rotation is turned by an angle drawn from [lo, hi] deg about a random axis "
@@ -128,7 +132,7 @@ class InitEnv:
     seed: int
 
 
-def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndarray, np.ndarray]:
+def reference_poses(reference_dir, n: int, gauge_radius: float, gauge_centre: str) -> tuple[np.ndarray, np.ndarray]:
     """pycolmap's poses in the unit-sphere gauge of its own points; (w2c [N,4,4], registered [N])."""
     import pycolmap
 
@@ -139,7 +143,7 @@ def reference_poses(reference_dir, n: int, gauge_radius: float) -> tuple[np.ndar
     pts = np.array([p.xyz for p in rec.points3D.values()])
     if len(pts) < 3:
         pts = cameras.camera_centers(ref["w2c"][ref["registered"]])
-    s, centre = cameras.gauge_from_points(pts, gauge_radius)
+    s, centre = cameras.gauge_from_points(pts, gauge_radius, centre=gauge_centre)
     return cameras.transform_w2c(ref["w2c"], s, np.eye(3), -s * centre), ref["registered"].astype(bool)
 
 
@@ -158,7 +162,7 @@ def initial_poses(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int]
         w2c[anchors] = pose_init.identity_init(len(anchors), p.identity_distance)
         return w2c, inputs, {"method": "identity"}, no_points
     if p.pose_init == "reference":
-        ref, registered = reference_poses(reference_dir, n, p.gauge_radius)
+        ref, registered = reference_poses(reference_dir, n, p.gauge_radius, p.gauge_centre)
         if registered.any():  # pycolmap's intrinsics (refined when it refined them)
             ids = np.flatnonzero(registered)
             ref_K = artifacts.load_reference_poses(reference_dir, ["K"])["K"]
@@ -309,7 +313,7 @@ def matches_init(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int],
                                            final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px,
                                            gauge_radius=p.gauge_radius, masks=masks,
                                            object_min_seen=p.object_min_seen,
-                                           gauge_percentile=p.gauge_percentile,
+                                           gauge_percentile=p.gauge_percentile, gauge_centre=p.gauge_centre,
                                            principal_point_p=p.principal_point_p, radial_p=p.radial_p,
                                            seed=env.seed, log=env.log.info)
 
