@@ -315,7 +315,7 @@ def lift_points(
 
 
 def gauge_from_points(points: np.ndarray, radius: float = 0.8, percentile: float = 99.0,
-                      centre: str = "median") -> tuple[float, np.ndarray]:
+                      centre: str = "box") -> tuple[float, np.ndarray]:
     """Scale s and centre c of the gauge y = s (x - c): s maps the half diagonal of the points' robust box (per
     axis, the ``100 - percentile``-th to ``percentile``-th percentiles) to ``radius``. A box, not a percentile
     distance, for the scale: the views that triangulate the points see some parts of an object more than
@@ -324,7 +324,8 @@ def gauge_from_points(points: np.ndarray, radius: float = 0.8, percentile: float
 
     centre="box": c is the box's middle (the whole box within ``radius``). centre="median": c is the points'
     median, where the views see most, moved towards the box's middle only as far as it takes to keep the whole
-    box inside the unit sphere; the rounds do better with it there (docs/REFINEMENT.md, "The gauge's centre")."""
+    box inside the unit sphere: held-out PSNR 0.3-0.8 dB higher on DTU, Chamfer worse on scan24 and the
+    photos-alone surfaces worse (three seeds, docs/REFINEMENT.md, "The gauge's centre")."""
     pts = np.asarray(points, np.float64)
     lo, hi = np.percentile(pts, [100.0 - percentile, percentile], axis=0)  # [3], [3]
     s = radius / max(0.5 * float(np.linalg.norm(hi - lo)), 1e-12)

@@ -7,8 +7,8 @@ camera frame, ``w2c``, pixel centres at +0.5):
 * :func:`init_from_matches` ("matches", the default for the anchors): our verified matches of the
   anchor views (and of the views that bridge them, chosen by ``stages.anchors.init_views``) go into
   a COLMAP database; COLMAP's incremental mapper and bundle adjustment pose them (intrinsics fixed
-  or refined); then the gauge: a similarity that puts the points' median at the origin (moved towards
-  their robust box's middle as far as keeps the box in the unit sphere) and scales the box's half diagonal
+  or refined); then the gauge: a similarity that puts the middle of the points' robust box at the origin
+  (or their median, ``gauge_centre``) and scales the box's half diagonal
   (:func:`manifoldneus.cameras.gauge_from_points`; the foreground points when masks exist) to
   ``gauge_radius`` (0.8), so the object sits inside the unit sphere. Views COLMAP cannot register get a registered neighbour's pose, and the reason.
 * :func:`identity_init` ("identity", the paper's wording): every view at the same canonical pose.
@@ -131,7 +131,7 @@ def init_from_matches(
     final_ba_scale_px: float = 0.5,
     gauge_radius: float = 0.8,
     gauge_percentile: float = 99.0,
-    gauge_centre: str = "median",
+    gauge_centre: str = "box",
     masks: Sequence[np.ndarray] | None = None,
     object_min_seen: float = 0.5,
     principal_point_p: float | None = None,
@@ -155,8 +155,8 @@ def init_from_matches(
 
     Gauge (:func:`manifoldneus.cameras.gauge_from_points`): y = s (x - c), s maps the half diagonal of the
     points' box between their ``100 - gauge_percentile``-th and ``gauge_percentile``-th percentiles per axis to
-    gauge_radius, c their median (``gauge_centre``, pulled towards the box's middle as far as keeps the box in
-    the unit sphere) or the box's middle: the object sits inside the unit sphere. Views COLMAP does not register (outside its largest model)
+    gauge_radius, c the box's middle or (``gauge_centre="median"``) the points' median, pulled towards the box's
+    middle as far as keeps the box in the unit sphere: the object sits inside the unit sphere. Views COLMAP does not register (outside its largest model)
     keep the pose of their best-matching registered neighbour (method ``fallback:<id>``) and are listed
     in ``unplaced`` with the reason in ``why_unplaced``.
     """

@@ -159,26 +159,26 @@ def test_undistortion_inverts_the_lens():
 def test_the_gauge_puts_a_lopsided_objects_whole_box_in_its_sphere():
     """Views see some parts of an object more than others (the synthetic scene's textured top, its base
     barely): the gauge scales the box of the points, not a median distance, so the parts the points cover
-    thinly fit the sphere too; its centre is the median where the box fits the unit sphere from there and
-    moves towards the box's middle where it does not; a few far outliers (mismatches) move neither its
-    centre nor its scale much."""
+    thinly fit the sphere too. Its centre is the box's middle, or (centre="median") the median where the box
+    fits the unit sphere from there, moved towards the box's middle where it does not; a few far outliers
+    (mismatches) move neither its centre nor its scale much."""
     from manifoldneus import synthetic
 
     rng = np.random.default_rng(0)
     surface = synthetic.sample_surface(20000)  # [P,3], radius <= 0.6 about the origin
     seen_most = surface[surface[:, 2] > 0.1]
     points = np.concatenate([surface[rng.random(len(surface)) < 0.1], np.repeat(seen_most, 5, 0)])  # [Q,3]
-    s_box, middle = cameras.gauge_from_points(points, radius=0.8, centre="box")
+    s_box, middle = cameras.gauge_from_points(points, radius=0.8)
     assert np.linalg.norm(s_box * (surface - middle), axis=1).max() < 0.82  # the whole object, thin parts too
-    s, centre = cameras.gauge_from_points(points, radius=0.8)
+    s, centre = cameras.gauge_from_points(points, radius=0.8, centre="median")
     median = np.median(points, 0)
     assert s == s_box
     lo, hi = np.percentile(points, [1, 99], axis=0)
     corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), -1).reshape(-1, 3)  # [8,3]
     assert 0.999 < np.linalg.norm(s * (corners - centre), axis=1).max() < 1 + 1e-9  # the box touches the sphere
     assert np.linalg.norm(centre - median) < 0.5 * np.linalg.norm(middle - median)  # pulled only part of the way
-    s_fit, centre_fit = cameras.gauge_from_points(points, radius=0.6)  # a smaller box fits from the median
+    s_fit, centre_fit = cameras.gauge_from_points(points, radius=0.6, centre="median")  # a smaller box fits from the median
     assert np.allclose(centre_fit, median)
     outliers = rng.normal(size=(len(points) // 200, 3)) * 10.0  # 0.5 % of the points, far away
-    s2, centre2 = cameras.gauge_from_points(np.concatenate([points, outliers]), radius=0.8)
+    s2, centre2 = cameras.gauge_from_points(np.concatenate([points, outliers]), radius=0.8, centre="median")
     assert abs(s2 / s - 1) < 0.05 and np.linalg.norm(centre2 - centre) * s < 0.05
