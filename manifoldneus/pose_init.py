@@ -10,7 +10,8 @@ camera frame, ``w2c``, pixel centres at +0.5):
   or refined); then the gauge: a similarity that puts the middle of the points' robust box at the origin
   (or their median, ``gauge_centre``) and scales the box's half diagonal
   (:func:`manifoldneus.cameras.gauge_from_points`; the foreground points when masks exist) to
-  ``gauge_radius`` (0.8), so the object sits inside the unit sphere. Views COLMAP cannot register get a registered neighbour's pose, and the reason.
+  ``gauge_radius`` (0.8), so the object sits inside the unit sphere. Views COLMAP cannot register get a
+  registered neighbour's pose, and the reason.
 * :func:`identity_init` ("identity", the paper's wording): every view at the same canonical pose.
 * Successors: :func:`place_successor`: COLMAP's absolute pose of a view's matches to already-optimised
   views, their keypoints lifted to 3D (:func:`successor_correspondences`, with depth rendered from the
@@ -156,8 +157,8 @@ def init_from_matches(
     Gauge (:func:`manifoldneus.cameras.gauge_from_points`): y = s (x - c), s maps the half diagonal of the
     points' box between their ``100 - gauge_percentile``-th and ``gauge_percentile``-th percentiles per axis to
     gauge_radius, c the box's middle or (``gauge_centre="median"``) the points' median, pulled towards the box's
-    middle as far as keeps the box in the unit sphere: the object sits inside the unit sphere. Views COLMAP does not register (outside its largest model)
-    keep the pose of their best-matching registered neighbour (method ``fallback:<id>``) and are listed
+    middle as far as keeps the box in the unit sphere: the object sits inside the unit sphere. Views COLMAP does
+    not register (outside its largest model) keep the pose of their best-matching registered neighbour (method ``fallback:<id>``) and are listed
     in ``unplaced`` with the reason in ``why_unplaced``.
     """
     say = log or (lambda s: None)

@@ -9,8 +9,8 @@ The SfM points are the final round's tracks over every view it trained, triangul
 silhouettes cut 3 % of the object, Chamfer 0.025 against 0.013), those in the views' common frustum
 (``anchors.object_min_seen``); the anchors' when the round kept no tracks.
 Output frame: the normalised object frame the method built (the middle of the anchors' points' robust box
-at the origin, or their median: ``anchors.gauge_centre``; the box's half diagonal at `anchors.gauge_radius`); the mesh (``mesh.ply``) and the poses (``colmap/`` text model, ``poses.zarr``) are
-both in it.
+at the origin, or their median: ``anchors.gauge_centre``; the box's half diagonal at `anchors.gauge_radius`);
+the mesh (``mesh.ply``) and the poses (``colmap/`` text model, ``poses.zarr``) are both in it.
 """
 from __future__ import annotations
 

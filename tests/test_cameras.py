@@ -177,7 +177,8 @@ def test_the_gauge_puts_a_lopsided_objects_whole_box_in_its_sphere():
     corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), -1).reshape(-1, 3)  # [8,3]
     assert 0.999 < np.linalg.norm(s * (corners - centre), axis=1).max() < 1 + 1e-9  # the box touches the sphere
     assert np.linalg.norm(centre - median) < 0.5 * np.linalg.norm(middle - median)  # pulled only part of the way
-    s_fit, centre_fit = cameras.gauge_from_points(points, radius=0.6, centre="median")  # a smaller box fits from the median
+    # a smaller box fits the unit sphere from the median itself
+    s_fit, centre_fit = cameras.gauge_from_points(points, radius=0.6, centre="median")
     assert np.allclose(centre_fit, median)
     outliers = rng.normal(size=(len(points) // 200, 3)) * 10.0  # 0.5 % of the points, far away
     s2, centre2 = cameras.gauge_from_points(np.concatenate([points, outliers]), radius=0.8, centre="median")
