@@ -34,6 +34,7 @@ def neural_stages_on_test_device():
     import inspect
 
     from runner import execute, params
+    from runner import inspect as runner_inspect
 
     resolve = params.resolve_params
     signature = inspect.signature(resolve)
@@ -45,8 +46,11 @@ def neural_stages_on_test_device():
             bound.arguments["overrides"] = [*overrides, f"run.device={TEST_DEVICE}"]
         return resolve(*bound.args, **bound.kwargs)
 
-    with pytest.MonkeyPatch.context() as mp:  # runs only: README's figures still compare against params.yaml
+    # runs and `status` alike (a status on params.yaml's cpu would call every neural stage stale); README's
+    # figures still compare against params.yaml
+    with pytest.MonkeyPatch.context() as mp:
         mp.setattr(execute, "resolve_params", on_test_device)
+        mp.setattr(runner_inspect, "resolve_params", on_test_device)
         yield
 
 

@@ -307,8 +307,8 @@ def test_training_loss_falls_and_checkpoint_roundtrip(tmp_path, trained_tiny):
     tr2 = Trainer(views, fp, rp, LossParams(), tp, run=run)
     tr2.load(path)
     assert tr2.step == tr.step
-    s1 = tr.field.sdf(torch.zeros(1, 3))
-    s2 = tr2.field.sdf(torch.zeros(1, 3))
+    s1 = tr.field.sdf(torch.zeros(1, 3, device=tr.device))
+    s2 = tr2.field.sdf(torch.zeros(1, 3, device=tr2.device))
     assert torch.allclose(s1, s2)
 
 
@@ -487,6 +487,9 @@ def test_no_sample_to_colour_is_not_an_error():
 
 
 def test_band_weights_interface():
+    # seeded: the MLP's geometric init is a sphere only to about 0.07 (std over seeds of the mean SDF on it,
+    # width 128), so an unseeded run failed the 0.1 bound on some workers' random states
+    torch.manual_seed(0)
     for kind in ("grid", "mlp"):
         fp = FieldParams(kind=kind, mlp_width=128, mlp_depth=4, mlp_skip=-1, color_width=16, color_depth=1,
                          grid_levels=3, grid_max_res=16)
