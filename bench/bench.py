@@ -295,6 +295,14 @@ def git_commit() -> str | None:
         return None
 
 
+def write_report(path: Path, result: dict, table: str) -> None:
+    """A bench's JSON to ``path`` (its folder made), then its table and where the JSON went, printed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    io.save_json(path, result)
+    print(table)
+    print(f"\nwrote {path}")
+
+
 def resolved_params(overrides=(), params_path: Path | None = None) -> dict:
     """{preset (``default`` for none): {"section.key": value}}: what every system of the bench resolves
     its parameters to (the fast profile, params.yaml, the bench's overrides). README compares it with

@@ -24,8 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench import sweep
-from manifoldneus import io
+from bench import bench, sweep
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -84,11 +83,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="manifoldneus_bench_executor_") as tmp:
         result = run(args.table, args.scene, args.values, args.executors.split(","), args.overrides, Path(tmp))
     result["markdown"] = markdown(result)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"executor-{dt.date.today().isoformat()}.json"
-    io.save_json(path, result)
-    print(result["markdown"])
-    print(f"\nwrote {path}")
+    bench.write_report(args.out / f"executor-{dt.date.today().isoformat()}.json", result, result["markdown"])
     return 0 if all(r["same_errors_as_first"] and not r["failed"] for r in result["rows"]) else 1
 
 

@@ -185,11 +185,8 @@ def main(argv=None) -> int:
               "control_deg": args.control_deg, "rays_per_view": args.rays_per_view,
               "scenes": {s: scene_report(s, args.artifacts, args.control_deg, args.rays_per_view)
                          for s in args.scenes.split(",")}}
-    path = args.out_dir / "observability" / f"pose-observability-{dt.date.today().isoformat()}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    io.save_json(path, result)
-    print(markdown(result))
-    print(f"\nwrote {path}")
+    bench.write_report(args.out_dir / "observability" / f"pose-observability-{dt.date.today().isoformat()}.json",
+                       result, markdown(result))
     return 0
 
 
