@@ -19,10 +19,11 @@ import datetime as dt
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import map_coordinates
 
 from bench import bench
 from manifoldneus import synthetic
-from manifoldneus.cameras import camera_centers
+from manifoldneus.cameras import camera_centers, lift_points, project_points
 from stages import features, matching
 
 
@@ -36,17 +37,10 @@ def exact_correspondence(scene: synthetic.SyntheticScene, a: int, b: int, ka: np
     ij = np.where(valid[:, None], ij, 1)
     near = np.stack([depth[ij[:, 1] + dy, ij[:, 0] + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], 1)
     valid &= (near > 0).all(1) & (near.max(1) - near.min(1) < 0.05 * near.mean(1))
-    # bilinear z-depth at ka (pixel centres at i + 0.5)
-    u = np.clip(ka - 0.5, 0, [w - 1.001, h - 1.001])
-    i0 = np.floor(u).astype(int)
-    f = u - i0
-    z = (depth[i0[:, 1], i0[:, 0]] * (1 - f[:, 0]) * (1 - f[:, 1]) + depth[i0[:, 1], i0[:, 0] + 1] * f[:, 0] * (1 - f[:, 1])
-         + depth[i0[:, 1] + 1, i0[:, 0]] * (1 - f[:, 0]) * f[:, 1] + depth[i0[:, 1] + 1, i0[:, 0] + 1] * f[:, 0] * f[:, 1])
-    xa = np.c_[ka, np.ones(len(ka))] @ np.linalg.inv(scene.K[a]).T * z[:, None]  # [M,3] camera a
-    wa, wb = scene.w2c[a], scene.w2c[b]
-    world = (xa - wa[:3, 3]) @ wa[:3, :3]  # R^T (x - t), row-wise
-    xb = (world @ wb[:3, :3].T + wb[:3, 3]) @ scene.K[b].T
-    return xb[:, :2] / xb[:, 2:], valid
+    z = map_coordinates(depth, [ka[:, 1] - 0.5, ka[:, 0] - 0.5], order=1, mode="nearest")  # bilinear, centres at +0.5
+    world = lift_points(scene.K[a], scene.w2c[a], ka, z)  # [M,3]
+    wb = scene.w2c[b]
+    return project_points(scene.K[b], world @ wb[:3, :3].T + wb[:3, 3]), valid
 
 
 def refine_lk(gray_a, gray_b, ka, kb, window: int) -> np.ndarray:
