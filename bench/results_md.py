@@ -165,8 +165,10 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
         against += f" and {pm(sfm_all, '.3f')} deg for SfM on every view at once (`--preset sfm-all`)"
     against += relative_rotations(bench_dir, scene)
     psnr, gt_psnr = s.get("psnr_masked", {}), s.get("gt_pose_psnr_masked", {})
+    shared = gt_psnr.get("n") == 1 and len(sc["runs"]) > 1 and all(r.get("gt_pose_psnr_masked") for r in sc["runs"])
     upper = (f" (NeuS on the ground-truth poses at equal iterations: {pm(gt_psnr, '.2f')} dB"
-             f"{', seed ' + str(sc['runs'][0]['seed']) if gt_psnr.get('n') == 1 else ''})"
+             + (", one training shared by the seeds" if shared
+                else f", seed {sc['runs'][0]['seed']}" if gt_psnr.get("n") == 1 else "") + ")"
              if gt_psnr.get("mean") is not None else "")
     return (f"{GENERATED_BY}\n**Result** on {scene} (`make bench-refine`, {result['date'][:10]}, "
             f"seed{'s' if len(sc['runs']) > 1 else ''} {seeds}): mean camera rotation error "
