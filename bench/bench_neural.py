@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from manifoldneus.artifacts import MESH
 from manifoldneus.field import FieldParams
 from manifoldneus.losses import LossParams
 from manifoldneus.metrics import psnr, ssim
@@ -253,6 +252,7 @@ def main():
         "history": tr.history,
     }
     if args.mesh is not None:
+        from manifoldneus.artifacts import MESH  # here: `profile_step --code` imports this module on older code
         from manifoldneus.meshing import extract_mesh, save_ply, save_preview
 
         t0 = time.time()
