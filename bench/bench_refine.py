@@ -13,8 +13,10 @@ COLMAP's mapper and bundle adjustment on every training view at once: the preset
 the same sitting; held-out
 masked PSNR of the final model and of the GT-pose NeuS (`reference_surface`) trained for the same
 number of iterations as all rounds together (for the seeds in --reference-seeds, default the
-first: it is the slowest stage), and of NeuS on `sfm-all`'s poses at those iterations (the same
-seeds; for the others `sfm-all` trains one iteration: its poses do not depend on the field);
+first; the GT-pose NeuS has a seed of its own, `reference_surface.seed`, so it is trained once and
+these seeds all read that training), and of NeuS on `sfm-all`'s poses at those iterations (trained
+for each of these seeds; for the others `sfm-all` trains one iteration: its poses do not depend on
+the field);
 wall time per stage. Prints mean +- std over seeds, per scene,
 and writes ``<out-dir>/refine/<label>-<date>.json``; ``bench/results_md.py`` puts the newest into
 README. Targets are checked here (``targets``), never in tests.
@@ -259,7 +261,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default="synthetic,scan24,scan24_idr")
     ap.add_argument("--seeds", default="0,1,2")
-    ap.add_argument("--reference-seeds", default=None, help="seeds that also train the GT-pose NeuS (default: the first)")
+    ap.add_argument("--reference-seeds", default=None, help="seeds that also train NeuS on sfm-all's poses at the rounds' iterations and read the GT-pose NeuS of that "
+                    "length (trained once: its seed is reference_surface.seed; default: the first seed)")
     ap.add_argument("--set", action="append", default=[], dest="overrides")
     ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
     ap.add_argument("--label", default="refine")
