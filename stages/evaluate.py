@@ -9,6 +9,8 @@
 - Novel views: held-out views rendered from the final model with their GT poses mapped into
   the model's frame through the inverse Sim3; PSNR/SSIM masked and unmasked; and again after
   test-time alignment (each held-out pose refined against the frozen field: `aligned_*`).
+- Intrinsics: the camera the run started from and ended with (and its lens distortion), also for a
+  scene without ground truth (a user's photos), where nothing else is scored.
 """
 from __future__ import annotations
 
@@ -116,7 +118,9 @@ def run(ctx) -> None:
     report: dict = {"label": ctx.scene}
     if not gt_meta["has_poses"]:
         ctx.log.warning("no ground truth: nothing to evaluate against")
-        io.save_json(ctx.out / artifacts.EVALUATION, {"has_ground_truth": False})
+        # the camera the run ended with is still worth saying: a user's photos are where it was estimated
+        io.save_json(ctx.out / artifacts.EVALUATION,
+                     {"has_ground_truth": False, "intrinsics": intrinsics_report(ctx, _rounds(ctx), None)})
         io.save_png(ctx.out / artifacts.POSE_ERROR_PLOT, np.zeros((8, 8, 3)))
         return
     gt = artifacts.load_ground_truth_poses(ctx.input("ground_truth"))

@@ -271,3 +271,38 @@ def test_a_video_of_an_object_comes_out_with_every_frame_posed(tmp_path):
     assert meta["fl_x"] == pytest.approx(synthetic.intrinsics(res, res)[0, 0], rel=0.1)  # from 1.2 x 192 = 230 px
     assert len(pycolmap.Reconstruction(str(out / "colmap")).images) == n
     assert len(trimesh.load(out / "mesh.glb", force="mesh").faces) > 0
+
+
+def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
+    """A folder of photos, no cameras, no masks (a user's capture): every stage runs, nothing is scored, and the
+    summary and evaluation.json still say which camera the run estimated (the evaluate stage wrote nothing of it
+    without ground truth)."""
+    from manifoldneus import synthetic
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    K = synthetic.intrinsics(128, 128)
+    for i, w2c in enumerate(synthetic.camera_poses(20)):  # TINY's synthetic scene, as photos
+        io.save_png(photos / f"IMG_{i:04d}.png", synthetic.render_view(K, w2c, 128, 128, seed=3)[0])
+    artifacts = tmp_path / "artifacts"
+    report = pipeline.run(str(photos), overrides=TINY, artifacts=artifacts)
+    assert report["evaluate"] == "computed" and report["export"] == "computed"
+    name = pipeline.resolve_scene(str(photos)).name
+    ev = io.load_json(artifacts / name / "evaluate" / report.fingerprints["evaluate"] / "evaluation.json")
+    assert ev["has_ground_truth"] is False and "poses" not in ev
+    final = ev["intrinsics"]["final"]
+    assert final["focal_px"] > 0 and "focal_err_pct" not in final and "ground_truth" not in ev["intrinsics"]
+    text = pipeline.run_summary(str(photos), report, artifacts)
+    line = next(x for x in text.splitlines() if x.startswith("camera ("))
+    assert line == pipeline.camera_line(ev["intrinsics"]) and "ground truth" not in line
+    assert "rotation" not in text  # no pose scores without ground truth
+
+
+def test_the_camera_line_names_a_lens_distortion_found():
+    intr = {"source": "exif", "start": {"focal_px": 500.0, "principal_point_px": [160.0, 120.0]},
+            "final": {"focal_px": 512.3, "principal_point_px": [160.0, 120.0], "distortion": [0.031, 0.0, 0.0, 0.0]}}
+    assert pipeline.camera_line(intr) == ("camera (exif): focal 512.3 px, principal point (160.0, 120.0); "
+                                          "self-calibrated from 500.0 px, (160.0, 120.0); lens distortion k1 +0.0310 "
+                                          "(removed from the images)")
+    intr["final"]["distortion"] = [0.0, 0.0, 0.0, 0.0]  # none found: nothing to say
+    assert "distortion" not in pipeline.camera_line(intr)
