@@ -97,7 +97,7 @@ def camera_line(intrinsics: dict) -> str:
     if abs(start["focal_px"] - final["focal_px"]) > 1e-6 or start["principal_point_px"] != final["principal_point_px"]:
         line += (f"; self-calibrated from {start['focal_px']:.1f} px, ({start['principal_point_px'][0]:.1f}, "
                  f"{start['principal_point_px'][1]:.1f})")
-    if final.get("distortion") is not None and any(final["distortion"]):
+    if final.get("distortion") and final["distortion"][0]:  # the self-calibration frees k1 only (SIMPLE_RADIAL)
         line += f"; lens distortion k1 {final['distortion'][0]:+.4f} (removed from the images)"
     if "focal_err_pct" in final:
         line += f"; ground truth {intrinsics['ground_truth']['focal_px']:.1f} px, {final['focal_err_pct']:.2f} % off"
