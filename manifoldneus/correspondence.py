@@ -10,10 +10,16 @@ round places from PnP are adjusted together with all the others (a multi-view re
 per-view one). The Sampson error needs no 3D points and is invariant to the similarity gauge the
 field fixes.
 
-A fraction of the matches (``holdout_frac``, drawn per pair with a fixed seed) never enters the
-loss: the guard compares their error under the round's starting and final poses, and a round that
-makes it worse by more than ``guard_tolerance`` gets its starting poses back (the field keeps what
-it learned). The error is in pixels: Sampson distance in normalised coordinates times the focal.
+A fraction of the tracks (or matches; ``holdout_frac``, drawn with a fixed seed) never enters the
+loss: they decide, view by view, whether the round's pose update is kept (:func:`accept_per_view`).
+A view keeps its new pose only when its held-out observations' robust error fell by more than
+``accept_z`` standard errors of its own paired change (start -> end, the points re-triangulated
+under each); otherwise it keeps the pose the round started from (the field keeps what it learned).
+The standard error is measured per view from the held-out observations themselves, so the noise
+threshold scales with how much evidence a view has. The start poses of a round come from a bundle
+adjustment that saw every track, so the test leans towards them: a pose update must beat the
+structure-from-motion it starts from on evidence the update did not train on (docs/REFINEMENT.md).
+Errors are in pixels: Sampson distance in normalised coordinates times the focal, or reprojection.
 """
 from __future__ import annotations
 
@@ -38,12 +44,15 @@ class CorrespondenceParams:
     retriangulate_every: int = param(10, "reprojection: steps between re-triangulations of the points", lo=1)
     robust_px: float = param(1.5, "Cauchy scale of the Sampson error (px): matches far above it pull little", lo=0.01)
     batch: int = param(16384, "Matches per iteration (all of them when fewer)", lo=1)
-    holdout_frac: float = param(0.1, "Fraction of the verified matches kept out of the loss for the guard",
-                                lo=0.0, hi=0.9)
-    guard: bool = param(True, "Give a round its starting poses back when it worsens the held-out matches' error")
-    guard_tolerance: float = param(0.5, "Relative rise of the held-out error that the guard tolerates (a bundle "
-                                   "adjustment overfits the matches: on scan24 the GT poses score 48 % above it)",
-                                   lo=0.0)
+    holdout_frac: float = param(0.1, "Fraction of the tracks (or matches) kept out of the loss: the evidence that "
+                                "decides which views keep a round's pose update", lo=0.0, hi=0.9)
+    guard: bool = param(True, "Keep a view's new pose only where its held-out tracks say it is better than the "
+                        "round's start (False: every view keeps its new pose)")
+    accept_z: float = param(2.0, "A view keeps its new pose when the mean change of its held-out observations' robust "
+                            "error is below -accept_z standard errors of that mean (a one-sided test at about 2 %)",
+                            lo=0.0)
+    accept_min_obs: int = param(8, "A view with fewer held-out observations than this keeps its start pose (too "
+                                "little evidence to measure its noise)", lo=2)
     seed: int = param(0, "Seed of the held-out draw (fixed, so every round and rerun holds out the same matches)",
                       lo=0)
 
@@ -277,15 +286,49 @@ class CorrespondenceLoss:
             return float(sampson_px(w2c, self.ms, idx).median())
 
 
-def guard_check(loss, w2c_start: torch.Tensor, w2c_end: torch.Tensor, p: CorrespondenceParams) -> dict:
-    """Held-out error (robust mean, px^2) under the start and end poses of a round; ``fired`` when the
-    guard is on and the end exceeds the start by more than ``p.guard_tolerance`` (relative)."""
+def held_out_views(loss) -> torch.Tensor:
+    """The view (local index) of each held-out error [H] ``loss.held_out_px`` returns; a held-out
+    match counts for both its views, so the Sampson kind's errors are given twice (see :func:`_per_view_errors`)."""
+    if isinstance(loss, ReprojectionLoss):
+        return loss.view[loss.held_index]
+    return torch.cat([loss.ms.view_a[loss.ms.held_index], loss.ms.view_b[loss.ms.held_index]])
+
+
+def _per_view_errors(loss, w2c: torch.Tensor) -> torch.Tensor:
+    e = loss.held_out_px(w2c)
+    return e if isinstance(loss, ReprojectionLoss) else torch.cat([e, e])
+
+
+def accept_per_view(loss, w2c_start: torch.Tensor, w2c_end: torch.Tensor, p: CorrespondenceParams) -> dict:
+    """Which views keep their new pose (module doc). ``w2c_start``/``w2c_end`` [n,3,4] over the loss's
+    views. Returns a JSON-able record with ``keep`` (bool per view), ``z`` (the paired change's mean over
+    its standard error, per view; None where a view has too few observations) and the held-out robust
+    error (mean of the Cauchy cost, px^2) under the start, the end and the kept poses."""
+    n = int(w2c_start.shape[0])
     if loss.n_held_out == 0:
-        return {"checked": False, "kind": p.kind, "held_out": 0, "fired": False, "why": "no held-out correspondences"}
+        return {"checked": False, "kind": p.kind, "held_out": 0, "keep": [not p.guard] * n, "kept": 0 if p.guard else n,
+                "n_views": n, "why": "no held-out correspondences"}
     with torch.no_grad():
-        e_start, e_end = loss.held_out_px(w2c_start), loss.held_out_px(w2c_end)  # [H] px each
-    start, end = (float(cauchy(e, p.robust_px).mean()) for e in (e_start, e_end))
-    out = {"checked": True, "kind": p.kind, "held_out": loss.n_held_out, "start": start, "end": end,
-           "start_median_px": float(e_start.median()), "end_median_px": float(e_end.median()), "fired": False}
-    out["fired"] = bool(p.guard and end > start * (1 + p.guard_tolerance))
-    return out
+        views = held_out_views(loss).cpu().numpy()  # [H]
+        e_start, e_end = _per_view_errors(loss, w2c_start), _per_view_errors(loss, w2c_end)  # [H] px each
+        change = (cauchy(e_end, p.robust_px) - cauchy(e_start, p.robust_px)).double().cpu().numpy()  # [H]
+    count = np.bincount(views, minlength=n)
+    total = np.bincount(views, change, minlength=n)
+    square = np.bincount(views, change**2, minlength=n)
+    mean = total / np.maximum(count, 1)
+    var = (square - count * mean**2) / np.maximum(count - 1, 1)  # unbiased, per view
+    se = np.sqrt(np.maximum(var, 0) / np.maximum(count, 1))
+    enough = count >= p.accept_min_obs
+    # a view that did not move has no change to test (se 0): it keeps its pose either way
+    z = np.where(enough & (se > 0), mean / np.where(se > 0, se, 1), np.nan)
+    keep = (enough & (z < -p.accept_z)) if p.guard else np.ones(n, bool)
+    kept_poses = torch.where(torch.as_tensor(keep, device=w2c_end.device)[:, None, None], w2c_end, w2c_start)
+    with torch.no_grad():
+        e_kept = _per_view_errors(loss, kept_poses)
+    robust = {f"error_{k}": float(cauchy(e, p.robust_px).mean())
+              for k, e in (("start", e_start), ("end", e_end), ("kept", e_kept))}
+    return {"checked": True, "kind": p.kind, "held_out": loss.n_held_out, "accept_z": p.accept_z, "n_views": n,
+            "kept": int(keep.sum()), "keep": keep.tolist(), "held_out_per_view": count.tolist(),
+            "z": [None if not np.isfinite(v) else round(float(v), 3) for v in z], **robust,
+            "start_median_px": float(e_start.median()), "end_median_px": float(e_end.median()),
+            "kept_median_px": float(e_kept.median())}

@@ -220,7 +220,7 @@ class Round:
             if t.cache is not None and carry.get("cache") is not None:
                 t.cache.load_state_dict(carry["cache"])
         self.w2c_init = np.array(w2c_all)
-        self.start_poses = self.trainer.w2c_init.clone()  # [n,3,4] what the guard compares with and rolls back to
+        self.start_poses = self.trainer.w2c_init.clone()  # [n,3,4] what a view's update is tested against
         self.polish = polish
         self.pose_local = np.arange(len(self.ids)) if pose_ids is None else np.flatnonzero(
             np.isin(self.ids, np.asarray(pose_ids, int)))  # the views whose poses move (local indices)
@@ -242,20 +242,24 @@ class Round:
         self.pose_trace.append(trainer.poses_numpy())
 
     def _guard(self, log: logging.Logger, desc: str) -> dict:
-        """The guard of :mod:`manifoldneus.correspondence`: the round's starting poses come back
-        when its pose update made the held-out correspondences' error worse."""
+        """The per-view acceptance of :mod:`manifoldneus.correspondence`: a view keeps the round's pose
+        update only where its held-out tracks say it is better; the others get their start pose back."""
         t = self.trainer
         if self.corr is None:
             return {"checked": False, "why": "poses not learned"}
-        out = correspondence.guard_check(self.corr, self.start_poses, t.poses().detach(), self.corr_p)
-        if out["fired"]:
-            t.set_poses(self.start_poses)
-            log.warning("%s: the pose update raised the held-out %s error from %.4g to %.4g (tolerance %g %%): "
-                            "poses rolled back to the round's start", desc, self.corr_p.kind, out["start"], out["end"],
-                            100 * self.corr_p.guard_tolerance)
-        elif out["checked"]:
-            log.info("%s: held-out %s error %.4g -> %.4g (median %.3f -> %.3f px)", desc, self.corr_p.kind,
-                         out["start"], out["end"], out["start_median_px"], out["end_median_px"])
+        out = correspondence.accept_per_view(self.corr, self.start_poses, t.poses().detach(), self.corr_p)
+        keep = torch.as_tensor(out["keep"], device=t.device)
+        t.set_poses(torch.where(keep[:, None, None], t.poses().detach(), self.start_poses))
+        out["kept_views"] = [int(v) for v in self.ids[np.asarray(out["keep"], bool)]]
+        if out["checked"]:
+            log.info("%s: %d of %d views keep their pose update (held-out %s error better by more than %g standard "
+                     "errors); the others keep their start. Held-out robust error %.4g -> %.4g (all updated) / %.4g "
+                     "(kept); median %.3f -> %.3f / %.3f px", desc, out["kept"], out["n_views"], self.corr_p.kind,
+                     self.corr_p.accept_z, out["error_start"], out["error_end"], out["error_kept"], out["start_median_px"],
+                     out["end_median_px"], out["kept_median_px"])
+        else:
+            log.warning("%s: %s: %s", desc, out["why"], "every view keeps its start pose" if self.corr_p.guard else
+                        "every view keeps its update (correspondence.guard is off)")
         return out
 
     def run(self, desc: str, checkpoint: Path | None = None, *, log: logging.Logger,
@@ -306,7 +310,8 @@ class Round:
 
     def poses_all(self) -> np.ndarray:
         out = np.array(self.w2c_init)
-        out[self.ids] = self.trainer.poses_numpy()
+        moved = np.asarray(self.guard.get("keep", np.ones(len(self.ids), bool)), bool)  # [n]
+        out[self.ids[moved]] = self.trainer.poses_numpy()[moved]  # the others stay at their start, to the last bit
         return out
 
     def carry(self) -> dict:
