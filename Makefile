@@ -36,14 +36,15 @@ view: setup
 test: setup
 	$(PY) -m pytest -q -n 2 --dist loadfile tests
 
-# the bench (scan24 unless SCENE or SCENES is given), then README's Results regenerated from the latest bench JSON of each scene
-BENCH_SCENES = $(if $(filter command line,$(origin SCENES)),$(SCENES),$(if $(filter command line,$(origin SCENE)),$(SCENE),scan24))
+# the bench (the four development scenes unless SCENE or SCENES is given), then README's Results regenerated from
+# the latest bench JSON of each scene
+BENCH_SCENES = $(if $(filter command line,$(origin SCENES)),$(SCENES),$(if $(filter command line,$(origin SCENE)),$(SCENE),synthetic scan24 scan24_idr scan65_idr))
 SEEDS ?= 0,1,2
 bench: setup
 	$(PY) -m bench.bench $(foreach s,$(BENCH_SCENES),--scene $(s)) --seeds $(SEEDS) $(ARGS)
 	$(PY) -m bench.results_md
 
-# do the joint rounds refine their initialisation? synthetic, scan24, scan24_idr x 3 seeds (README: "Refinement")
+# do the joint rounds refine their initialisation? synthetic, scan24, scan24_idr, scan65_idr x 3 seeds (README: "Refinement")
 bench-refine: setup
 	$(PY) -m bench.bench_refine $(if $(filter command line,$(origin SCENE)),--scenes $(SCENE)) $(ARGS)
 	$(PY) -m bench.results_md

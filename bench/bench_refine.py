@@ -43,16 +43,6 @@ TIMED = ("ingest", "features", "matching", "covisibility", "spectral", "schedule
          "successors", "mesh", "reference_surface", "evaluate")
 
 
-def rounds_total_iters(store: pipeline.Store) -> int:
-    """Iterations of the anchors' round and every successor round of the current versions."""
-    total = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / ROUND_META)
-    steps = total["train"]["steps"]
-    succ = store.version_dir("successors", store.current("successors"))
-    for d in succ.glob("round_*"):
-        steps += io.load_json(d / ROUND_META)["train"]["steps"]
-    return int(steps)
-
-
 def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_reference: bool) -> dict:
     """The pipeline for one seed, and what it measured."""
     over = [*overrides, f"run.seed={seed}"]
@@ -60,7 +50,7 @@ def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_r
     # first the rounds (the GT-pose NeuS off: its iteration count is known only after them)
     pipeline.run(scene, until="successors", overrides=[*over, "reference_surface.enabled=false"], artifacts=artifacts)
     store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
-    iters = rounds_total_iters(store)
+    iters = bench.rounds_total_iters(store)
     over += [f"reference_surface.iters={iters}"] if with_reference else ["reference_surface.enabled=false"]
     pipeline.run(scene, overrides=over, artifacts=artifacts)
     rows = bench.collect(scene, artifacts, None, TIMED)
@@ -192,10 +182,11 @@ def targets(scene: str, runs: list[dict]) -> list[dict]:
         per_seed = [check(r) for r in ok]
         if any(v is None or lim is None for v, lim in per_seed):
             continue  # a figure this run does not have (e.g. no held-out tracks)
-        # a relative 1e-6: poses held fixed are stored in float32, the ones a round kept at its start in float64
+        # equal within 1e-4 (relative) counts as equal: poses held fixed are float32 roundings of the SfM's,
+        # in another frame, those a round kept at its start the SfM's own float64
         out.append({"target": name, "per_seed": [{"seed": r["seed"], "value": v, "limit": lim,
-                                                  "met": v <= lim * (1 + 1e-6)} for r, (v, lim) in zip(ok, per_seed)],
-                    "met_every_seed": bool(per_seed) and all(v <= lim * (1 + 1e-6) for v, lim in per_seed)})
+                                                  "met": v <= lim * (1 + 1e-4)} for r, (v, lim) in zip(ok, per_seed)],
+                    "met_every_seed": bool(per_seed) and all(v <= lim * (1 + 1e-4) for v, lim in per_seed)})
     rot = spread(r["final"]["rot_deg"] for r in ok)
     out.append({"target": "spread over seeds <= 0.02 deg", "value": rot["std"],
                 "met_every_seed": rot["std"] is not None and rot["std"] <= 0.02})

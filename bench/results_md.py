@@ -107,17 +107,20 @@ def resolved_now(overrides: tuple) -> dict:
 
 def changed_defaults(result: dict) -> list[str]:
     """``section.key`` (with the preset, where only a preset's value changed) of every parameter that
-    the bench resolved to one value and the checkout resolves to another now: its figures are not what
-    the same command gives today. Keys only one side has are left out (a new parameter's default keeps
+    the bench resolved to one value and the checkout resolves to another now, or that the checkout no
+    longer has (``section.key removed``: the behaviour it set has changed): its figures are not what the
+    same command gives today. A key only the checkout has is left out (a new parameter's default keeps
     the old behaviour); a JSON without the record (older benches) counts as unchanged."""
     then = result.get("resolved_params")
     if not then:
         return []
     now = resolved_now(tuple(result.get("overrides", ())))
     changed = [(preset, k) for preset, values in then.items() for k, v in values.items()
-               if k in now.get(preset, {}) and now[preset][k] != v]
+               if preset in now and now[preset].get(k, v) != v]
+    removed = [(preset, k) for preset, values in then.items() for k in values if preset in now and k not in now[preset]]
     plain = {k for preset, k in changed if preset == "default"}
-    return list(dict.fromkeys(k if k in plain else f"{k} ({preset})" for preset, k in changed))
+    return list(dict.fromkeys([*(k if k in plain else f"{k} ({preset})" for preset, k in changed),
+                               *(f"{k} removed" for _, k in removed)]))
 
 
 def stale_note(result: dict, what: str) -> str:

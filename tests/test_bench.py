@@ -71,6 +71,11 @@ def test_json_has_every_system_with_finite_pose_errors(tiny_bench):
         assert last[key]["mean"] == pytest.approx(first[key]["mean"], rel=1e-4), key
     assert ev["poses"][-1]["n_views"] > 3 and last["rot_err_deg"]["mean"] > 0
     assert result["summary"]["front_end_over_pycolmap"] > 0
+    # NeuS on fixed poses is compared at equal iterations: as many as the method's rounds together, per seed
+    for seed, systems_of_seed in result["per_seed"].items():
+        ours = systems_of_seed["manifoldneus"]["field_iters"]
+        assert ours > 0 and all(systems_of_seed[k]["field_iters"] == ours for k in ("neus-colmap", "sfm-all")), seed
+    assert "equal iterations" in bench.comparison_markdown(result)
 
 
 def test_each_figure_is_the_mean_over_seeds_with_its_spread(tiny_bench):

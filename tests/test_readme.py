@@ -139,8 +139,12 @@ def test_a_bench_measured_with_other_defaults_is_not_shown_as_today(tmp_path):
     older = json.loads(json.dumps(current))
     older["resolved_params"]["default"]["field.grid_max_res"] = 64
     older["resolved_params"]["neus-barf"]["gate.lam"] = 0.5
-    older["resolved_params"]["default"]["field.a_key_removed_since"] = 1  # one side only: left out
-    assert results_md.changed_defaults(older) == ["field.grid_max_res", "gate.lam (neus-barf)"]
+    older["resolved_params"]["default"]["field.a_key_removed_since"] = 1  # the behaviour it set is gone
+    newer = json.loads(json.dumps(current))
+    del newer["resolved_params"]["default"]["field.grid_max_res"]  # a key added since keeps the old behaviour
+    assert results_md.changed_defaults(newer) == []
+    assert results_md.changed_defaults(older) == ["field.grid_max_res", "gate.lam (neus-barf)",
+                                                  "field.a_key_removed_since removed"]
     for scene, result in (("scan24", current), ("synthetic", older)):
         full = json.loads((ROOT / "bench/scan24/2026-11-26.json").read_text())
         full.update(result, scene=scene)
@@ -149,7 +153,8 @@ def test_a_bench_measured_with_other_defaults_is_not_shown_as_today(tmp_path):
     text = results_md.results_markdown(tmp_path, tmp_path)
     assert "| scan24 | ManifoldNeuS" in text and "| synthetic |" not in text
     assert "synthetic: `synthetic/2026-11-26.json` was measured with other defaults" in text
-    assert "(field.grid_max_res, gate.lam (neus-barf))" in text and "make bench SCENE=synthetic" in text
+    assert "(field.grid_max_res, gate.lam (neus-barf), field.a_key_removed_since removed)" in text
+    assert "make bench SCENE=synthetic" in text
 
 
 def test_the_headline_sets_its_rotation_errors_beside_the_alignment_free_ones(tmp_path):
