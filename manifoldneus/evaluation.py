@@ -22,6 +22,12 @@ class MeshParams:
     """Section `meshing`: SDF -> triangle mesh."""
 
     resolution: int = param(192, "Marching-cubes grid resolution over the unit sphere's cube", lo=16, hi=1024)
+    coarse_step: int = param(8, "Evaluate the field only near its surface: a grid every coarse_step nodes, then the "
+                             "cells that may hold surface split level by level (a power of two; 0 = every grid "
+                             "node: slower, the same mesh)", lo=0, hi=64)
+    band: float = param(2.0, "Narrow band: a cell is split when its corners change sign or one lies within this many "
+                        "cell diagonals of the surface (a learned SDF can be steeper than a distance: at 1.5 a few "
+                        "cells of scan24 were missed)", lo=1.0)
     keep_components: int = param(1, "Keep this many largest connected components (0 = all)", lo=0)
     cull_by_masks: bool = param(True, "Cull vertices outside the training views' dilated masks (when masks exist)")
     cull_dilation: float = param(3.0, "Mask dilation for culling, in pixels of the images the field was trained on "
@@ -98,7 +104,8 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
     see and to the object's ``region`` (:class:`~manifoldneus.object_region.ObjectRegion`, the field's
     frame) and the silhouettes of its ``object_points`` [P,3], when asked (K [N,3,3] and w2c [N,4,4] at image size
     hw = (H, W), the masks' size)."""
-    mesh = meshing.extract_mesh(trainer.sdf_fn(), p.resolution, trainer.rp.radius, p.keep_components)
+    mesh = meshing.extract_mesh(trainer.sdf_fn(), p.resolution, trainer.rp.radius, p.keep_components,
+                                coarse_step=p.coarse_step, band=p.band)
     trained = (trainer.H, trainer.W)  # the culls' tolerances are in its pixels
     culled = False
     if p.drop_sphere_closure and len(mesh.faces):

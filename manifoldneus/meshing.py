@@ -1,4 +1,5 @@
-"""Surface extraction: SDF on a grid inside the sphere -> marching cubes -> largest component(s),
+"""Surface extraction: SDF on a grid inside the sphere (everywhere, or only in a narrow band around
+its zero level, refined from a coarse grid) -> marching cubes -> largest component(s),
 optional culling (the sphere's closure, the training views' dilated masks or, without masks, the
 silhouettes of the object's SfM points, surface no view sees, what lies outside the object's region),
 PLY writing and a PNG preview.
@@ -35,17 +36,78 @@ def sdf_grid(sdf_fn, resolution: int = 256, radius: float = 1.0, chunk: int = 26
     return out, lo, hi
 
 
-def marching_cubes(values: np.ndarray, lo, hi, level: float = 0.0):
-    """skimage marching cubes of a grid over [lo, hi] -> trimesh.Trimesh. skimage winds the faces
-    so their normals point towards increasing values: outwards for an SDF (outside positive)."""
+def narrow_band_sdf_grid(sdf_fn, resolution: int = 512, radius: float = 1.0, lo=None, hi=None, coarse_step: int = 8,
+                         band: float = 2.0, chunk: int = 262144):
+    """The SDF on a resolution^3 grid over [lo, hi] (default the sphere's cube), evaluated only near its
+    zero level: a dense grid every ``coarse_step`` nodes first, then level by level each cell that may hold
+    surface (its corners change sign, or one lies within ``band`` cell diagonals of it: a distance
+    field's surface is no nearer) is split in eight and the new nodes evaluated. Returns (values [r,r,r]
+    indexed x,y,z, with 4 * radius where not evaluated; cells bool [r,r,r], True at the lowest corner of
+    every finest cell near the surface, all its corners evaluated; lo; hi; number of SDF evaluations).
+    Intersected with the sphere like :func:`sdf_grid`."""
+    if coarse_step < 1 or coarse_step & (coarse_step - 1):
+        raise ValueError(f"coarse_step must be a power of two, got {coarse_step}")
+    lo = np.full(3, -radius) if lo is None else np.asarray(lo, float)
+    hi = np.full(3, radius) if hi is None else np.asarray(hi, float)
+    r, last = resolution, resolution - 1
+    spacing = (hi - lo) / last  # [3]
+    ticks = np.arange(0, last, coarse_step)  # the coarse cells' lowest corners, per axis
+    n = int(ticks[-1]) + coarse_step + 1  # padded so that no cell is cut: nodes past `hi` are evaluated like others
+    values = np.full(n**3, 4.0 * radius, np.float32)  # flat, index x * n * n + y * n + z
+    evaluated = np.zeros(n**3, bool)
+    queued = np.zeros(n**3, bool)  # scratch: each node once per level
+
+    def evaluate(nodes: np.ndarray) -> None:  # flat node indices, repeats allowed
+        queued[nodes[~evaluated[nodes]]] = True
+        flat = np.flatnonzero(queued)
+        queued[flat] = False
+        for a in range(0, len(flat), chunk):
+            f = flat[a:a + chunk]
+            x = lo + np.stack(np.unravel_index(f, (n, n, n)), 1) * spacing  # [C,3]
+            values[f] = np.maximum(np.asarray(sdf_fn(x), np.float32).reshape(-1), np.linalg.norm(x, axis=1) - radius)
+        evaluated[flat] = True
+
+    def offsets(steps) -> np.ndarray:  # flat offsets of every combination of per-axis steps
+        d = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), -1).reshape(-1, 3)
+        return d @ np.array([n * n, n, 1])
+
+    def near_surface(cells: np.ndarray, step: int) -> np.ndarray:  # cells [M]: flat lowest corners
+        v = values[cells[:, None] + offsets([0, step])[None]]  # [M,8]
+        crosses = (v.min(1) <= 0) & (v.max(1) >= 0)
+        return crosses | (np.abs(v).min(1) <= band * step * np.linalg.norm(spacing))
+
+    cells = offsets(ticks)
+    evaluate(offsets(np.append(ticks, ticks[-1] + coarse_step)))
+    step = coarse_step
+    while True:
+        cells = cells[near_surface(cells, step)]
+        if step == 1 or not len(cells):
+            break
+        step //= 2
+        evaluate((cells[:, None] + offsets([0, step, 2 * step])[None]).reshape(-1))
+        cells = (cells[:, None] + offsets([0, step])[None]).reshape(-1)
+    ijk = np.stack(np.unravel_index(cells, (n, n, n)), 1)  # [M,3]
+    ijk = ijk[(ijk < last).all(1)]  # cells inside the requested grid
+    mask = np.zeros((r, r, r), bool)
+    mask[tuple(ijk.T)] = True
+    values = values.reshape(n, n, n)[:r, :r, :r]
+    return np.ascontiguousarray(values), mask, lo, hi, int(evaluated.sum())
+
+
+def marching_cubes(values: np.ndarray, lo, hi, level: float = 0.0, mask: np.ndarray | None = None):
+    """skimage marching cubes of a grid over [lo, hi] -> trimesh.Trimesh, in the cells whose lowest corner
+    ``mask`` holds (None: every cell). skimage winds the faces so their normals point towards increasing
+    values: outwards for an SDF (outside positive)."""
     import trimesh
     from skimage import measure
 
-    if not (values.min() < level < values.max()):
-        raise ValueError(f"the SDF does not cross {level} on the grid (min {values.min():.3g}, max {values.max():.3g})")
+    inside = values if mask is None else values[mask]
+    if not len(inside) or not (inside.min() < level < values.max()):
+        lo_v = inside.min() if len(inside) else float("nan")
+        raise ValueError(f"the SDF does not cross {level} on the grid (min {lo_v:.3g}, max {values.max():.3g})")
     r = np.array(values.shape) - 1
     spacing = (np.asarray(hi) - np.asarray(lo)) / r
-    verts, faces, _, _ = measure.marching_cubes(values, level=level, spacing=tuple(spacing))
+    verts, faces, _, _ = measure.marching_cubes(values, level=level, spacing=tuple(spacing), mask=mask)
     verts = verts + np.asarray(lo)
     return trimesh.Trimesh(verts, faces, process=False)
 
@@ -166,10 +228,15 @@ def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0):
 
 
 def extract_mesh(sdf_fn, resolution: int = 256, radius: float = 1.0, keep_components: int = 1,
-                 level: float = 0.0, lo=None, hi=None):
-    """SDF -> grid -> marching cubes -> largest component(s). Returns trimesh.Trimesh."""
-    vals, lo, hi = sdf_grid(sdf_fn, resolution, radius, lo=lo, hi=hi)
-    mesh = marching_cubes(vals, lo, hi, level)
+                 level: float = 0.0, lo=None, hi=None, coarse_step: int = 0, band: float = 2.0):
+    """SDF -> grid -> marching cubes -> largest component(s). Returns trimesh.Trimesh. coarse_step > 0
+    evaluates the grid only near the surface (:func:`narrow_band_sdf_grid`), 0 everywhere."""
+    mask = None
+    if coarse_step > 0:
+        vals, mask, lo, hi, _ = narrow_band_sdf_grid(sdf_fn, resolution, radius, lo, hi, coarse_step, band)
+    else:
+        vals, lo, hi = sdf_grid(sdf_fn, resolution, radius, lo=lo, hi=hi)
+    mesh = marching_cubes(vals, lo, hi, level, mask)
     if keep_components > 0:
         mesh = largest_components(mesh, keep_components)
     return mesh

@@ -31,8 +31,8 @@ class Params:
 UPSTREAM = ("ingest", "ground_truth")
 # meshing: the keys of a mesh without an object crop (the crop needs the method's SfM region)
 SECTIONS = ("reference_surface", "train", "field", "render", "loss", "run.threads", "run.device", "split", "novel_views",
-            *(f"meshing.{k}" for k in ("resolution", "keep_components", "drop_sphere_closure", "cull_by_masks",
-                                       "cull_dilation", "cull_unseen", "visibility_size", "preview_size")))
+            *(f"meshing.{k}" for k in ("resolution", "coarse_step", "band", "keep_components", "drop_sphere_closure",
+                                       "cull_by_masks", "cull_dilation", "cull_unseen", "visibility_size", "preview_size")))
 OUTPUTS = (artifacts.REFERENCE_SURFACE_META,)
 # of the method's ingest only the pixels (and monocular priors): cameras, masks and names come from the layout
 # (ground_truth), so a run on the layout's photos alone shares this version with the calibrated, masked run

@@ -752,6 +752,29 @@ def test_a_checkpoint_that_does_not_fit_leaves_the_previous_one(tmp_path, monkey
     assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["round_0.pt"]
 
 
+@pytest.mark.parametrize("resolution", [61, 96])
+def test_the_narrow_band_meshes_what_the_whole_grid_meshes_with_far_fewer_evaluations(resolution):
+    """A torus's distance field: the grid evaluated only near its surface (from every 8th node, split level
+    by level) gives the dense grid's mesh, also where the grid's cells do not divide by the coarse step."""
+    from manifoldneus import meshing
+
+    calls = []
+
+    def torus(x):  # [P,3] -> [P]
+        calls.append(len(x))
+        q = np.stack([np.linalg.norm(x[:, :2], axis=1) - 0.5, x[:, 2]], 1)
+        return np.linalg.norm(q, axis=1) - 0.15
+
+    dense = meshing.extract_mesh(torus, resolution, 1.0, 0)
+    n_dense, calls[:] = sum(calls), []
+    band = meshing.extract_mesh(torus, resolution, 1.0, 0, coarse_step=8)
+    assert len(band.faces) == len(dense.faces) > 1000
+    assert np.array_equal(np.unique(band.vertices.round(9), axis=0), np.unique(dense.vertices.round(9), axis=0))
+    assert sum(calls) < 0.35 * n_dense
+    with pytest.raises(ValueError, match="power of two"):
+        meshing.narrow_band_sdf_grid(torus, resolution, coarse_step=6)
+
+
 def test_an_empty_mesh_reads_back_as_an_empty_mesh(tmp_path):
     """A field with no surface in the sphere meshes to nothing; evaluate, export and the viewer read
     that file back as a mesh with no faces (trimesh alone reads it as a Scene, which has none)."""
