@@ -12,11 +12,14 @@ field fixes.
 
 A fraction of the tracks (or matches; ``holdout_frac``, drawn with a fixed seed) never enters the
 loss: they decide, view by view, whether the round's pose update is kept (:func:`accept_per_view`).
-A view keeps its new pose only when its held-out observations' robust error fell by more than
-``accept_z`` standard errors of its own paired change (start -> end, the points re-triangulated
-under each); otherwise it keeps the pose the round started from (the field keeps what it learned).
-The standard error is measured per view from the held-out observations themselves, so the noise
-threshold scales with how much evidence a view has. The start poses of a round come from a bundle
+A view keeps its new pose only when its held-out observations' robust error fell by more than z
+standard errors of its own paired change (start -> end, the points re-triangulated under each), z
+set so that a round keeps an update that changed nothing with probability ``accept_alpha`` at most
+over all its views; otherwise it keeps the pose the round started from (the field keeps what it
+learned). The standard error is measured per view from the held-out observations themselves, so the
+noise threshold scales with how much evidence a view has. The kept poses together must not raise the
+held-out error either (a view's update also moves the points its neighbours' errors are taken to);
+when they do, every view keeps its start. The start poses of a round come from a bundle
 adjustment that saw every track, so the test leans towards them: a pose update must beat the
 structure-from-motion it starts from on evidence the update did not train on (docs/REFINEMENT.md).
 Errors are in pixels: Sampson distance in normalised coordinates times the focal, or reprojection.
@@ -27,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.stats import norm
 
 from manifoldneus.cameras import pixels_to_normalised, skew
 from manifoldneus.config import param
@@ -48,9 +52,10 @@ class CorrespondenceParams:
                                 "decides which views keep a round's pose update", lo=0.0, hi=0.9)
     guard: bool = param(True, "Keep a view's new pose only where its held-out tracks say it is better than the "
                         "round's start (False: every view keeps its new pose)")
-    accept_z: float = param(2.0, "A view keeps its new pose when the mean change of its held-out observations' robust "
-                            "error is below -accept_z standard errors of that mean (a one-sided test at about 2 %)",
-                            lo=0.0)
+    accept_alpha: float = param(0.05, "Chance that any of a round's views keeps an update that changed nothing (the "
+                                "family-wise false acceptance): a view keeps its update when its held-out error fell "
+                                "by more than z standard errors, z the normal quantile at 1 - accept_alpha / the "
+                                "number of views tested (Bonferroni; 42 views: 3.04)", lo=1e-6, hi=0.5)
     accept_min_obs: int = param(8, "A view with fewer held-out observations than this keeps its start pose (too "
                                 "little evidence to measure its noise)", lo=2)
     seed: int = param(0, "Seed of the held-out draw (fixed, so every round and rerun holds out the same matches)",
@@ -318,16 +323,26 @@ def accept_per_view(loss, w2c_start: torch.Tensor, w2c_end: torch.Tensor, p: Cor
     mean = total / np.maximum(count, 1)
     var = (square - count * mean**2) / np.maximum(count - 1, 1)  # unbiased, per view
     se = np.sqrt(np.maximum(var, 0) / np.maximum(count, 1))
-    enough = count >= p.accept_min_obs
     # a view that did not move has no change to test (se 0): it keeps its pose either way
-    z = np.where(enough & (se > 0), mean / np.where(se > 0, se, 1), np.nan)
-    keep = (enough & (z < -p.accept_z)) if p.guard else np.ones(n, bool)
-    kept_poses = torch.where(torch.as_tensor(keep, device=w2c_end.device)[:, None, None], w2c_end, w2c_start)
-    with torch.no_grad():
-        e_kept = _per_view_errors(loss, kept_poses)
+    tested = (count >= p.accept_min_obs) & (se > 0)
+    z = np.where(tested, mean / np.where(se > 0, se, 1), np.nan)
+    z_limit = float(norm.isf(p.accept_alpha / max(int(tested.sum()), 1)))
+    keep = (tested & (z < -z_limit)) if p.guard else np.ones(n, bool)
+
+    def kept_errors(keep):
+        with torch.no_grad():
+            return _per_view_errors(loss, torch.where(torch.as_tensor(keep, device=w2c_end.device)[:, None, None],
+                                                      w2c_end, w2c_start))
+
+    e_kept = kept_errors(keep)
     robust = {f"error_{k}": float(cauchy(e, p.robust_px).mean())
               for k, e in (("start", e_start), ("end", e_end), ("kept", e_kept))}
-    return {"checked": True, "kind": p.kind, "held_out": loss.n_held_out, "accept_z": p.accept_z, "n_views": n,
+    together_worse = bool(p.guard and keep.any() and robust["error_kept"] > robust["error_start"])
+    if together_worse:
+        keep = np.zeros(n, bool)
+        e_kept, robust["error_kept"] = e_start, robust["error_start"]
+    return {"checked": True, "kind": p.kind, "held_out": loss.n_held_out, "z_limit": z_limit, "n_views": n,
+            "n_tested": int(tested.sum()), "together_worse": together_worse,
             "kept": int(keep.sum()), "keep": keep.tolist(), "held_out_per_view": count.tolist(),
             "z": [None if not np.isfinite(v) else round(float(v), 3) for v in z], **robust,
             "start_median_px": float(e_start.median()), "end_median_px": float(e_end.median()),

@@ -252,11 +252,12 @@ class Round:
         t.set_poses(torch.where(keep[:, None, None], t.poses().detach(), self.start_poses))
         out["kept_views"] = [int(v) for v in self.ids[np.asarray(out["keep"], bool)]]
         if out["checked"]:
-            log.info("%s: %d of %d views keep their pose update (held-out %s error better by more than %g standard "
-                     "errors); the others keep their start. Held-out robust error %.4g -> %.4g (all updated) / %.4g "
+            log.info("%s: %d of %d views keep their pose update (held-out %s error better by more than %.2f standard "
+                     "errors%s); the others keep their start. Held-out robust error %.4g -> %.4g (all updated) / %.4g "
                      "(kept); median %.3f -> %.3f / %.3f px", desc, out["kept"], out["n_views"], self.corr_p.kind,
-                     self.corr_p.accept_z, out["error_start"], out["error_end"], out["error_kept"], out["start_median_px"],
-                     out["end_median_px"], out["kept_median_px"])
+                     out["z_limit"], "; the views that passed raised it together, so none keeps its update"
+                     if out["together_worse"] else "", out["error_start"], out["error_end"], out["error_kept"],
+                     out["start_median_px"], out["end_median_px"], out["kept_median_px"])
         else:
             log.warning("%s: %s: %s", desc, out["why"], "every view keeps its start pose" if self.corr_p.guard else
                         "every view keeps its update (correspondence.guard is off)")
