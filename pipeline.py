@@ -17,9 +17,11 @@ the package ``runner``, whose docstring describes the artifact layout and the fi
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import importlib.metadata
 import logging
+import os
 import signal
 import sys
 import threading
@@ -122,6 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n{why}: nothing half-written was published; run the same command again to go on "
               "(trainings resume from their checkpoints)", file=sys.stderr)
         return 143 if isinstance(e, Terminated) else 130
+    except BrokenPipeError:  # the reader went away (`status | head -3`): stop quietly, as other tools do
+        with contextlib.suppress(OSError, ValueError, AttributeError):  # no flush at exit into the closed pipe
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     except (PipelineError, ParamError, SceneError) as e:
         if args.debug:
             raise

@@ -13,7 +13,7 @@ from runner.execute import RunReport, _refuse_damaged, cli_hint
 from runner.fingerprint import compute_fingerprints
 from runner.params import resolve_params
 from runner.registry import load_stages
-from runner.store import Store
+from runner.store import MANIFEST, Store
 
 
 def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS, data_root=None,
@@ -163,8 +163,12 @@ def verify(scene_name: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=
     store = Store(artifacts, scene.name, preset)
     out = {}
     for name in load_stages():
-        fp = store.current(name)
+        fp = store.pointed(name)
         if fp is None:
+            continue
+        if not store.is_complete(name, fp):  # the pointer names a version whose manifest cannot be read
+            manifest = store.version_dir(name, fp) / MANIFEST
+            out[name] = ("DAMAGED", [f"{manifest}: missing or not valid JSON; `run --force {name}` recomputes it"])
             continue
         if "files" not in store.manifest(name, fp):
             out[name] = ("unverified", ["its manifest predates file hashes; `run --force` it to record them"])

@@ -43,12 +43,14 @@ class Store:
             return False
         return True
 
-    def current(self, stage: str) -> str | None:
+    def pointed(self, stage: str) -> str | None:
+        """The fingerprint the stage's pointer names, complete or not (None: no pointer)."""
         link = self.stage_dir(stage) / self.pointer
-        if not link.is_symlink():
-            return None
-        fp = os.readlink(link)
-        return fp if self.is_complete(stage, fp) else None
+        return os.readlink(link) if link.is_symlink() else None
+
+    def current(self, stage: str) -> str | None:
+        fp = self.pointed(stage)
+        return fp if fp is not None and self.is_complete(stage, fp) else None
 
     def set_current(self, stage: str, fingerprint: str) -> None:
         tmp = self.stage_dir(stage) / f".current-{_process()}"

@@ -258,6 +258,29 @@ def test_cli_status_show_params_diff_gc(capsys, artifacts):
     assert report.is_dir()
 
 
+def test_a_reader_that_goes_away_ends_the_command_quietly(capsys, tmp_path, monkeypatch):
+    """`status ... | head -3`: the pipe closes under the printing; the command stops with the shell's
+    SIGPIPE status (141) and no `error:` line."""
+    import sys
+
+    class ClosedPipe:
+        def __init__(self):
+            self.sink = open(tmp_path / "sink", "w")
+
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            pass
+
+        def fileno(self):
+            return self.sink.fileno()
+
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    assert pipeline.main(["status", "--scene", "synthetic", "--artifacts", str(tmp_path / "art")]) == 141
+    assert "error" not in capsys.readouterr().err
+
+
 def test_gc_acts_only_on_versions_it_wrote_inside_the_artifacts_root(capsys, tmp_path, monkeypatch):
     artifacts = tmp_path / "work" / "artifacts"
     sets = sum((["--set", s] for s in FAST_SYNTH), [])
@@ -475,6 +498,13 @@ def test_a_damaged_version_is_named_and_never_read(capsys, artifacts):
     assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
     assert pipeline.main(["verify", *args]) == 1
     assert "content differs from its hash" in capsys.readouterr().out
+    # a manifest cut short: the version is named, not left out
+    assert pipeline.main(["run", *args, *sets, "--until", "ground_truth", "--force", "ingest"]) == 0
+    manifest = store.version_dir("ground_truth", store.current("ground_truth")) / "manifest.json"
+    manifest.write_text(manifest.read_text()[:200])
+    assert pipeline.main(["verify", *args]) == 1
+    out = capsys.readouterr().out
+    assert "ground_truth       DAMAGED" in out and "--force ground_truth" in out and "ingest             ok" in out
 
 
 def test_upstream_recomputed_to_the_same_bytes_leaves_downstream_fresh(artifacts, tmp_path, monkeypatch):
