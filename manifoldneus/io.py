@@ -74,6 +74,18 @@ def save_json(path: Path, obj) -> None:
     Path(path).write_text(json.dumps(_finite(obj), indent=2, default=_jsonable, allow_nan=False) + "\n")
 
 
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``path`` whole or not at all: a full disk or a kill mid-write leaves the earlier file (if
+    any) and no partial one (a temporary file beside it, renamed into place)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def load_json(path: Path):
     return json.loads(Path(path).read_text())
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, cameras, export, meshing
+from manifoldneus import artifacts, cameras, export, io, meshing
 
 ASSETS = Path(__file__).with_name("viewer_assets")
 MAX_FACES = 200_000  # what a browser turns smoothly on a laptop; larger meshes are decimated to it
@@ -217,7 +217,7 @@ def write_page(versions: dict[str, Path], path: Path, title: str, max_faces: int
     data = {"title": title, **scene_data(versions, max_faces)}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(build_page(data, title))
+    io.write_text_atomic(path, build_page(data, title))
     return {**data["counts"], "faces": data["mesh"]["n_faces"], "faces_full": data["mesh"]["n_faces_full"],
             "bytes": path.stat().st_size}
 

@@ -3,6 +3,7 @@ against the tiny run's artifacts, and the page rendered in headless Chromium."""
 import html
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -87,6 +88,26 @@ def test_decimated_page_stays_small(tiny_run, tmp_path):
     path, held = pipeline.view("synthetic", artifacts_dir, out=tmp_path / "small.html", max_faces=1000)
     data, _ = page_data(path)
     assert held["faces"] == data["mesh"]["n_faces"] <= 1000 < held["faces_full"]
+
+
+def test_a_write_that_fails_midway_leaves_the_earlier_page(tiny_run, tmp_path, monkeypatch):
+    """A full disk while the page is written: the good page written before stays whole, and nothing
+    half-written is left beside it."""
+    import errno
+
+    artifacts_dir, _ = tiny_run
+    path, _ = pipeline.view("synthetic", artifacts_dir, out=tmp_path / "v.html", max_faces=1000)
+    before = path.read_bytes()
+    real = Path.write_text
+
+    def full_disk(self, text, *a, **k):
+        real(self, text[: len(text) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    with pytest.raises(OSError):
+        pipeline.view("synthetic", artifacts_dir, out=path, max_faces=1000)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["v.html"]
 
 
 def test_the_page_renders_in_headless_chromium(page, tmp_path):
