@@ -3,6 +3,7 @@ stale), `verify` (re-hash), `show` (what a version holds) and `view` (the viewer
 from __future__ import annotations
 
 import json
+import shlex
 from pathlib import Path
 
 from manifoldneus.artifacts import MESH, load_evaluation, load_schedule_meta  # `artifacts` is the folder here
@@ -22,6 +23,14 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
     poses' and held-out views' scores where the scene has ground truth, and the paths to open."""
     store = Store(artifacts, resolve_scene(scene_name, data_root).name, preset)
     version = report.fingerprints
+
+    def command(verb: str) -> str:  # the same scene, artifacts (and preset: the viewer's), quoted for a shell
+        words = ["python", "pipeline.py", verb, "--scene", scene_name]
+        if Path(artifacts).resolve() != Path(DEFAULT_ARTIFACTS).resolve():
+            words += ["--artifacts", str(artifacts)]
+        words += ["--data-root", str(data_root)] if data_root is not None else []
+        return shlex.join(words + (["--preset", preset] if preset and verb == "view" else []))
+
     lines, total = [], 0.0
     for name, how in report.items():
         seconds = store.manifest(name, version[name])["wall_seconds"] if how == "computed" else 0.0
@@ -35,7 +44,11 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
                            store.version_dir("schedule", version["schedule"]))
     if "evaluate" in report:
         ev = load_evaluation(store.version_dir("evaluate", version["evaluate"]))
-        if ev.get("poses"):
+        if ev.get("poses") and "summary" not in ev["poses"][-1]:  # e.g. 2 views posed: no Sim3 to score them
+            final = ev["poses"][-1]
+            out.append(f"poses ({final['label']}, {final['n_views']} views): not scored against ground truth, "
+                       f"{final.get('skipped', 'no summary')}")
+        elif ev.get("poses"):
             final = ev["poses"][-1]
             rot, centre = final["summary"]["rot_err_deg"], final["summary"].get("center_err_units", {})
             units = ev.get("geometry", {}).get("units", "")
@@ -60,13 +73,13 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
         where = "the input's world" if frame["frame"] == "input" else "the method's unit-sphere frame"
         out.append(f"result:  {export_dir} (transforms.json, colmap/, mesh.glb, mesh.ply, sparse_points.ply; "
                    f"{where}, {frame['units']})")
-        out.append(f"viewer:  python pipeline.py view --scene {scene_name}{f' --preset {preset}' if preset else ''}")
+        out.append(f"viewer:  {command('view')}")
     if "mesh" in report:
         mesh_dir = store.version_dir("mesh", version["mesh"])
         out += [f"mesh:    {mesh_dir / MESH} (the method's unit-sphere frame, no colours)",
                 f"cameras: {mesh_dir / 'colmap'} (COLMAP text model, the method's frame)"]
     if "evaluate" in report:
-        out.append(f"report:  make report SCENE={scene_name}")
+        out.append(f"report:  {command('report')}")
     return "\n".join(out)
 
 

@@ -298,6 +298,29 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     assert "rotation" not in text  # no pose scores without ground truth
 
 
+def test_the_summary_of_a_run_too_small_to_score_still_ends_well(tiny_run, monkeypatch):
+    """Two posed views (too few for a Sim3): the evaluation skips the score, and the summary says so
+    instead of failing on the missing figures; its commands name the run's artifacts, quoted for a shell."""
+    import shlex
+
+    import runner.inspect
+
+    artifacts, report = tiny_run
+    real = runner.inspect.load_evaluation
+
+    def two_views(path):
+        ev = real(path)
+        ev["poses"][-1] = {"label": "round_2", "n_views": 2, "skipped": "fewer than 3 views: no Sim3"}
+        return ev
+
+    monkeypatch.setattr(runner.inspect, "load_evaluation", two_views)
+    text = pipeline.run_summary("synthetic", report, artifacts)
+    assert "poses (round_2, 2 views): not scored against ground truth, fewer than 3 views: no Sim3" in text
+    for verb, label in (("view", "viewer:"), ("report", "report:")):
+        line = next(x for x in text.splitlines() if x.startswith(label))
+        assert shlex.split(line.split(":", 1)[1])[2:] == [verb, "--scene", "synthetic", "--artifacts", str(artifacts)]
+
+
 def test_the_camera_line_names_a_lens_distortion_found():
     intr = {"source": "exif", "start": {"focal_px": 500.0, "principal_point_px": [160.0, 120.0]},
             "final": {"focal_px": 512.3, "principal_point_px": [160.0, 120.0], "distortion": [0.031, 0.0, 0.0, 0.0]}}
