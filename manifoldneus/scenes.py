@@ -111,7 +111,7 @@ def input_signature(ref: SceneRef) -> str:
         return f"synthetic-{ref.seed}"
     if ref.kind == "video":
         return f"video-{io.file_digests([ref.path])[0][:16]}"
-    files = [p for p in sorted(ref.path.rglob("*")) if p.is_file()]
+    files = sorted(_input_files(ref.path))
     h = hashlib.sha256()
     for p, digest in zip(files, io.file_digests(files)):
         h.update(f"{p.relative_to(ref.path)}|{digest}\n".encode())
@@ -119,6 +119,23 @@ def input_signature(ref: SceneRef) -> str:
 
 
 # ---------------------------------------------------------------------------- helpers
+
+
+def _input_files(folder: Path) -> list[Path]:
+    """Every file under ``folder``, leaving out an artifacts folder kept inside it (one whose scene
+    folders hold stage folders: the run's own output is not its input)."""
+    out = []
+    for top, dirs, files in os.walk(folder):
+        dirs[:] = [d for d in dirs if not _is_artifacts_root(Path(top) / d)]
+        out += [Path(top) / f for f in files]
+    return out
+
+
+def _is_artifacts_root(path: Path) -> bool:
+    try:
+        return any((scene / "ingest").is_dir() or (scene / ".runs").is_dir() for scene in path.iterdir() if scene.is_dir())
+    except OSError:
+        return False
 
 
 def _idr_image_dir(path: Path) -> Path:

@@ -282,6 +282,21 @@ def test_an_image_of_another_size_is_named(plain_folder, tiny_synthetic):
         views_of(plain_folder)
 
 
+def test_an_artifacts_folder_inside_the_photo_folder_is_not_an_input(plain_folder, tmp_path, monkeypatch):
+    """`--scene . --artifacts ./artifacts`: what the runs write there leaves the photos' signature (and so
+    ingest) as it was; a new photo still changes it."""
+    monkeypatch.setenv("MANIFOLDNEUS_CACHE", str(tmp_path / "cache"))
+    ref = resolve_scene(str(plain_folder))
+    before = scenes.input_signature(ref)
+    version = plain_folder / "artifacts" / ref.name / "ingest" / "0123abcd"
+    version.mkdir(parents=True)
+    (version / "manifest.json").write_text("{}")
+    (plain_folder / "artifacts" / ref.name / ".runs").mkdir()
+    assert scenes.input_signature(ref) == before
+    (plain_folder / "notes.txt").write_text("a file beside the photos is an input")
+    assert scenes.input_signature(ref) != before
+
+
 def test_a_photo_replaced_with_its_size_and_time_kept_changes_the_signature(plain_folder, tiny_synthetic, tmp_path,
                                                                            monkeypatch):
     monkeypatch.setenv("MANIFOLDNEUS_CACHE", str(tmp_path / "cache"))
