@@ -77,7 +77,8 @@ def resolve_scene(name: str, data_root: Path | None = None) -> SceneRef:
             return SceneRef(name=folder_scene_name(c.resolve(), root), kind="folder", path=c.resolve())
     if Path(name).is_file() and Path(name).suffix.lower() in VIDEO_EXTENSIONS:
         path = Path(name).resolve()
-        return SceneRef(name=folder_scene_name(path.with_suffix(""), root), kind="video", path=path)
+        # the file's whole path in the hash: clip.mp4, clip.avi and a folder clip/ are three scenes
+        return SceneRef(name=f"{path.stem}-{hashlib.sha256(str(path).encode()).hexdigest()[:8]}", kind="video", path=path)
     if Path(name).is_file():
         what = "an image" if Path(name).suffix.lower() in IMAGE_EXTENSIONS else "a file"
         raise SceneError(f"--scene {name} is {what}, not a folder: a scene is the folder that holds the photos; "

@@ -297,6 +297,14 @@ def test_an_artifacts_folder_inside_the_photo_folder_is_not_an_input(plain_folde
     assert scenes.input_signature(ref) != before
 
 
+def test_two_videos_and_a_folder_of_one_stem_are_three_scenes(tmp_path):
+    for name in ("clip.avi", "clip.mp4"):
+        (tmp_path / name).write_bytes(b"")
+    (tmp_path / "clip").mkdir()
+    names = {resolve_scene(str(tmp_path / n), tmp_path).name for n in ("clip.avi", "clip.mp4", "clip")}
+    assert len(names) == 3 and all(n.startswith("clip") for n in names)
+
+
 def test_a_photo_replaced_with_its_size_and_time_kept_changes_the_signature(plain_folder, tiny_synthetic, tmp_path,
                                                                            monkeypatch):
     monkeypatch.setenv("MANIFOLDNEUS_CACHE", str(tmp_path / "cache"))
