@@ -11,11 +11,12 @@
 * ``world_from_model.json``: the similarity from the method's unit-sphere frame to the frame of the
   exports (:func:`write_frame`), so that any result of the pipeline can be brought into it.
 
-Image file names are ``<view name>.png`` everywhere (:func:`image_filename`).
+Image file names are ``<view name>.png`` everywhere, white space as ``_`` (:func:`image_filename`).
 """
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +28,9 @@ FRAME = "world_from_model.json"
 
 
 def image_filename(name: str) -> str:
-    """The file name of a view's image in every export (and in the reference stage's COLMAP run)."""
-    return f"{name}.png"
+    """The file name of a view's image in every export (and in the reference stage's COLMAP run): white
+    space becomes ``_``, since COLMAP's text models end a name at the first space."""
+    return re.sub(r"\s", "_", name) + ".png"
 
 
 def shared_cameras(K: np.ndarray, valid: np.ndarray) -> np.ndarray:
