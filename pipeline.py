@@ -176,6 +176,10 @@ def run_scenes(args) -> int:
 
 
 def _command(args) -> int:
+    artifacts = getattr(args, "artifacts", None)
+    if artifacts is not None and Path(artifacts).exists() and not Path(artifacts).is_dir():
+        raise PipelineError(f"--artifacts {artifacts} is a file, not a folder: name a folder for the artifacts "
+                            "(it is created when missing)")
     if args.command == "run":
         return run_scenes(args)
     elif args.command == "status":

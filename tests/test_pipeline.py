@@ -281,6 +281,15 @@ def test_a_reader_that_goes_away_ends_the_command_quietly(capsys, tmp_path, monk
     assert "error" not in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", ["run", "status", "gc", "verify"])
+def test_artifacts_naming_a_file_is_one_error_line(command, capsys, tmp_path):
+    (tmp_path / "a-file").write_text("not a folder")
+    scene = [] if command == "gc" else ["--scene", "synthetic"]
+    assert pipeline.main([command, *scene, "--artifacts", str(tmp_path / "a-file")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --artifacts") and "is a file, not a folder" in err
+
+
 def test_gc_acts_only_on_versions_it_wrote_inside_the_artifacts_root(capsys, tmp_path, monkeypatch):
     artifacts = tmp_path / "work" / "artifacts"
     sets = sum((["--set", s] for s in FAST_SYNTH), [])
