@@ -245,9 +245,9 @@ def cli_hint(command: str, scene_name: str, *words: str, artifacts: Path = DEFAU
     return shlex.join([*args, *words])
 
 
-def _refuse_damaged(store: Store, stage: str, fingerprint: str, rebuild: str) -> None:
-    """``rebuild``: the command that recomputes it (:func:`cli_hint`)."""
-    problems = store.damage(stage, fingerprint)
+def _refuse_damaged(store: Store, stage: str, fingerprint: str, rebuild: str, deep: bool = False) -> None:
+    """``rebuild``: the command that recomputes it (:func:`cli_hint`); ``deep``: re-hash the files too."""
+    problems = store.damage(stage, fingerprint, deep=deep)
     if problems:
         raise PipelineError(f"{stage} version {fingerprint} is damaged ({problems[0]}"
                             f"{f', and {len(problems) - 1} more' if len(problems) > 1 else ''}); rebuild it: {rebuild}")
@@ -283,16 +283,16 @@ def run(
         if problem:
             raise ParamError(f"run.device: {problem}")
     report = RunReport()
-    intact: set[tuple[str, str]] = set()  # versions whose files were checked in this run
+    intact: set[tuple[str, str, bool]] = set()  # versions whose files were checked in this run (deep: re-hashed)
 
     def hint(*words: str) -> str:
         return cli_hint("run", scene_name, *words, artifacts=artifacts, data_root=data_root, params_path=params_path,
                         profile=profile, preset=preset, overrides=overrides)
 
-    def refuse_damaged(stage: str, fingerprint: str) -> None:
-        if (stage, fingerprint) not in intact:
-            _refuse_damaged(store, stage, fingerprint, hint("--until", stage, "--force", stage))
-            intact.add((stage, fingerprint))
+    def refuse_damaged(stage: str, fingerprint: str, deep: bool = False) -> None:
+        if (stage, fingerprint, True) not in intact and (stage, fingerprint, deep) not in intact:
+            _refuse_damaged(store, stage, fingerprint, hint("--until", stage, "--force", stage), deep)
+            intact.add((stage, fingerprint, deep))
 
     def needs_computing(name: str, fp: str) -> bool:
         return name in force or not store.is_complete(name, fp)
@@ -312,7 +312,8 @@ def run(
                             f"stage {name} needs {up} with the current parameters, which has not been computed; "
                             f"run: {hint('--until', name)}"
                         )
-                    refuse_damaged(up, fps[up]["fingerprint"])
+                    # a stage about to compute re-hashes what it reads: a flipped byte keeps a file's size
+                    refuse_damaged(up, fps[up]["fingerprint"], deep=needs_computing(name, fp))
                 if needs_computing(name, fp):
                     with store.computing(name, fp):
                         if needs_computing(name, fp):  # else another run computed it while this one waited

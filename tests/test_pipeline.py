@@ -507,6 +507,9 @@ def test_a_damaged_version_is_named_and_never_read(capsys, artifacts):
     assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
     assert pipeline.main(["verify", *args]) == 1
     assert "content differs from its hash" in capsys.readouterr().out
+    # a stage computed again re-hashes what it reads: it never caches a result of the damaged bytes
+    with pytest.raises(pipeline.PipelineError, match="ingest version .* is damaged .*content differs"):
+        pipeline.run("synthetic", until="ground_truth", force=["ground_truth"], overrides=FAST_SYNTH, artifacts=artifacts)
     # a manifest cut short: the version is named, not left out
     assert pipeline.main(["run", *args, *sets, "--until", "ground_truth", "--force", "ingest"]) == 0
     manifest = store.version_dir("ground_truth", store.current("ground_truth")) / "manifest.json"
