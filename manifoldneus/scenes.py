@@ -428,18 +428,54 @@ def _colmap_K(camera) -> np.ndarray:
     return K
 
 
+# COLMAP camera model -> the indices of its parameters that are OpenCV's [k1, k2, p1, p2(, k3, k4, k5, k6)]
+# (None: those coefficients are zero). Models not listed (fisheye, ...) are refused by name.
+COLMAP_DISTORTION = {"SIMPLE_PINHOLE": None, "PINHOLE": None, "SIMPLE_RADIAL": (3, None, None, None),
+                     "RADIAL": (3, 4, None, None), "OPENCV": (4, 5, 6, 7), "FULL_OPENCV": (4, 5, 6, 7, 8, 9, 10, 11)}
+
+
+def _colmap_distortion(camera, where: Path) -> np.ndarray | None:
+    """OpenCV distortion coefficients of a COLMAP camera, None for a pinhole (all zero)."""
+    model = camera.model.name
+    if model not in COLMAP_DISTORTION:
+        raise SceneError(f"{where}: camera {camera.camera_id} is a {model} camera, which this pipeline cannot "
+                         f"undistort ({', '.join(COLMAP_DISTORTION)} can); undistort the model first (colmap "
+                         f"image_undistorter) and give the undistorted folder")
+    index = COLMAP_DISTORTION[model]
+    params = np.asarray(camera.params, np.float64)
+    coeffs = None if index is None else np.array([0.0 if i is None else params[i] for i in index])
+    return coeffs if coeffs is not None and np.any(coeffs) else None
+
+
 def _colmap_views(path: Path, p) -> dict:
+    """The images a COLMAP model names, undistorted where its cameras have a lens distortion (each at its
+    camera's K, as `ingest.distortion` does), named by their path in the model without extension."""
     rec, images = _colmap_read(path)
     folder = path / "images" if (path / "images").is_dir() else path
     files = [folder / im.name for im in images]
     missing = [f for f in files if not f.is_file()]
     if missing:
         raise SceneError(f"COLMAP model names {len(missing)} image(s) absent from {folder}, e.g. {missing[0].name}")
-    return {
-        "images": np.stack([io.read_image(f) for f in files]),
-        "K": np.stack([_colmap_K(rec.cameras[im.camera_id]) for im in images]),
-        "names": [Path(im.name).stem for im in images],
-    }
+    # camA/v00.png and camB/v00.png are two views: a subfolder is part of the name
+    names = [str(Path(im.name).with_suffix("")).replace("/", "_") for im in images]
+    clash = sorted({n for n in names if names.count(n) > 1})
+    if clash:
+        raise SceneError(f"{_colmap_model_dir(path)}: {len(clash)} view name(s) given by two images, e.g. "
+                         f"{' and '.join(im.name for im, n in zip(images, names) if n == clash[0])}; rename one")
+    pixels = [io.read_image(f) for f in files]
+    shapes = [im.shape[:2] for im in pixels]
+    if len(set(shapes)) != 1:
+        common = max(set(shapes), key=shapes.count)
+        odd = [f"{im.name} ({w}x{h})" for im, (h, w) in zip(images, shapes) if (h, w) != common]
+        raise SceneError(f"{folder}: {len(odd)} image(s) of the COLMAP model differ in size from the others' "
+                         f"{common[1]}x{common[0]}: {', '.join(odd[:5])}; this pipeline needs one image size")
+    model_dir = _colmap_model_dir(path)
+    K = np.stack([_colmap_K(rec.cameras[im.camera_id]) for im in images])
+    for i, im in enumerate(images):
+        d = _colmap_distortion(rec.cameras[im.camera_id], model_dir)
+        if d is not None:
+            pixels[i] = cameras.undistort_image(pixels[i], K[i], d)
+    return {"images": np.stack(pixels), "K": K, "names": names}
 
 
 def _plain_views(path: Path, p) -> dict:

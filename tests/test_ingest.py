@@ -58,6 +58,39 @@ def test_idr_scan24_matches_monosdf_poses():
     np.testing.assert_allclose(ca, cb, atol=1e-2)
 
 
+def test_a_colmap_camera_with_lens_distortion_is_undistorted_not_read_as_a_pinhole(colmap_folder, tiny_synthetic):
+    """An OPENCV camera with k1 = 0.3: the images come out as the ingest.distortion path undistorts them;
+    a camera model the pipeline cannot undistort is refused by name."""
+    cams = colmap_folder / "sparse/0/cameras.txt"
+    h, w = tiny_synthetic.images.shape[1:3]
+    K = tiny_synthetic.K[0]
+    cams.write_text(f"1 OPENCV {w} {h} {K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]} 0.3 0.1 0 0\n")
+    v = views_of(colmap_folder)
+    for i in range(len(v["images"])):  # as the undistortion of ingest.distortion gives them
+        assert np.array_equal(v["images"][i], cameras.undistort_image(tiny_synthetic.images[i], K, [0.3, 0.1, 0, 0]))
+    assert not np.array_equal(v["images"][0], tiny_synthetic.images[0])
+    cams.write_text(f"1 OPENCV_FISHEYE {w} {h} {K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]} 0.1 0 0 0\n")
+    with pytest.raises(SceneError, match="OPENCV_FISHEYE camera, which this pipeline cannot undistort"):
+        views_of(colmap_folder)
+
+
+def test_colmap_images_of_one_file_name_in_two_subfolders_are_two_views(colmap_folder):
+    images = (colmap_folder / "sparse/0/images.txt").read_text().replace("view00.png", "camA/v.png")
+    images = images.replace("view01.png", "camB/v.png")
+    (colmap_folder / "sparse/0/images.txt").write_text(images)
+    for sub, old in (("camA", "view00.png"), ("camB", "view01.png")):
+        (colmap_folder / "images" / sub).mkdir()
+        (colmap_folder / "images" / old).rename(colmap_folder / "images" / sub / "v.png")
+    v = views_of(colmap_folder)
+    assert len(set(v["names"])) == len(v["names"]) == 6 and {"camA_v", "camB_v"} <= set(v["names"])
+
+
+def test_a_colmap_image_of_another_size_is_named(colmap_folder, tiny_synthetic):
+    io.save_png(colmap_folder / "images" / "view03.png", tiny_synthetic.images[3][:-4])
+    with pytest.raises(SceneError, match=r"1 image\(s\) of the COLMAP model differ in size .*: view03\.png"):
+        views_of(colmap_folder)
+
+
 def test_idr_fixture_roundtrip(idr_folder, tiny_synthetic):
     v = views_of(idr_folder)
     np.testing.assert_allclose(v["K"], tiny_synthetic.K, atol=1e-6)
