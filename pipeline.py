@@ -136,8 +136,13 @@ def main(argv: list[str] | None = None) -> int:
     except PermissionError as e:
         if args.debug:
             raise
-        print(f"error: no permission to write {e.filename}: choose a writable artifacts folder with --artifacts DIR",
-              file=sys.stderr)
+        artifacts = Path(getattr(args, "artifacts", None) or DEFAULT_ARTIFACTS).resolve()
+        if e.filename and not Path(e.filename).resolve().is_relative_to(artifacts):  # an input, being read
+            print(f"error: no permission to read {e.filename}: make it readable (chmod u+r) or move it out of the "
+                  "scene's folder", file=sys.stderr)
+        else:
+            print(f"error: no permission to write {e.filename}: choose a writable artifacts folder with --artifacts DIR",
+                  file=sys.stderr)
         return 2
     except Exception as e:  # noqa: BLE001 - a stage's failure: one line, the traceback is in its log
         if args.debug:

@@ -744,6 +744,23 @@ def test_every_expected_failure_is_one_line(artifacts, capsys, monkeypatch):
     assert pipeline.main(args) == 2
     assert "error: no permission to write" in capsys.readouterr().err
 
+    # a photo that cannot be read is an input: the fix is the photo's, not the artifacts folder's
+    import numpy as np
+
+    from manifoldneus import io, scenes
+
+    photos = artifacts.parent / "photos"
+    photos.mkdir()
+    io.save_png(photos / "img_13.png", np.zeros((8, 8, 3), np.uint8))
+
+    def unreadable(paths):
+        raise PermissionError(13, "Permission denied", str(paths[0]))
+
+    monkeypatch.setattr(scenes.io, "file_digests", unreadable)
+    assert pipeline.main(["run", "--scene", str(photos), "--artifacts", str(artifacts)]) == 2
+    err = capsys.readouterr().err
+    assert f"error: no permission to read {photos / 'img_13.png'}: make it readable" in err
+
 
 def test_a_run_ends_with_a_summary_and_colmap_logs_only_to_log_txt(artifacts, capfd):
     args = ["run", "--scene", "synthetic", "--artifacts", str(artifacts), *sum((["--set", s] for s in FAST_SYNTH), [])]
