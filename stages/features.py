@@ -50,6 +50,9 @@ class Params:
     n_octave_layers: int = param(3, "Scale levels per octave", lo=1, hi=8)
     min_features: int = param(8, "A view with fewer keypoints is recorded as featureless (warning)", lo=0)
     workers: int = param(2, "Threads for extraction over images (OpenCV releases the GIL)", lo=1)
+    max_image_size: int = param(3200, "Images whose longer side exceeds this (px) are downscaled for extraction and "
+                                "their keypoints scaled back (COLMAP's default too): SIFT's memory grows with the "
+                                "pixels, about 4 GiB per 48-megapixel photo; 0 = never", lo=0)
 
 
 UPSTREAM = ("ingest",)
@@ -93,12 +96,22 @@ def extract_sift(
     contrast_threshold: float = 0.02,
     edge_threshold: float = 10.0,
     n_octave_layers: int = 3,
+    max_image_size: int = 0,
 ) -> dict:
-    """SIFT on one image. Returns a dict of keypoints [K,2] (project pixel convention),
-    scales [K], orientations [K] (radians), responses [K], descriptors [K,128] (unit rows)."""
+    """SIFT on one image (downscaled to ``max_image_size`` on its longer side first, when larger and not 0).
+    Returns a dict of keypoints [K,2] (project pixel convention, the image's own pixels), scales [K],
+    orientations [K] (radians), responses [K], descriptors [K,128] (unit rows)."""
     import cv2
 
     gray = to_gray(image)
+    h, w = gray.shape[:2]
+    scale = max_image_size / max(h, w) if max_image_size and max(h, w) > max_image_size else 1.0
+    if scale < 1.0:
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+        mask = None if mask is None else cv2.resize((np.asarray(mask) > 0).astype(np.uint8), size,
+                                                    interpolation=cv2.INTER_NEAREST)
+        scale = np.array([size[0] / w, size[1] / h])  # [2]: the resize's own factor per axis
     sift = cv2.SIFT_create(
         nfeatures=int(max_features),
         nOctaveLayers=int(n_octave_layers),
@@ -118,8 +131,9 @@ def extract_sift(
     if n == 0 or desc is None:
         return empty_features()
     return {
-        "keypoints": np.array([k.pt for k in kps], np.float32).reshape(n, 2) + 0.5,
-        "scales": np.array([k.size for k in kps], np.float32),
+        # pixel edges at integers (+0.5 from OpenCV's centres), then back to the image's own pixels
+        "keypoints": ((np.array([k.pt for k in kps], np.float64).reshape(n, 2) + 0.5) / scale).astype(np.float32),
+        "scales": (np.array([k.size for k in kps], np.float64) / np.mean(scale)).astype(np.float32),
         "orientations": np.radians(np.array([k.angle for k in kps], np.float32)),
         "responses": np.array([k.response for k in kps], np.float32),
         "descriptors": normalize_descriptors(desc, root_sift),
@@ -194,6 +208,7 @@ def run(ctx) -> None:
         contrast_threshold=p.contrast_threshold,
         edge_threshold=p.edge_threshold,
         n_octave_layers=p.n_octave_layers,
+        max_image_size=p.max_image_size,
     )
     seconds = time.perf_counter() - t0
 

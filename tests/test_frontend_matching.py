@@ -144,6 +144,21 @@ def test_sift_counts_and_rootsift_unit_norm():
     assert 0 < len(fm["keypoints"]) < n and (fm["keypoints"][:, 0] <= W // 2 + 1).all()
 
 
+def test_a_photo_larger_than_max_image_size_is_extracted_downscaled_in_its_own_pixels():
+    """An image twice max_image_size: SIFT runs on its half-size copy (what bounds its memory) and the
+    keypoints come back in the image's own pixels: those of the half-size image, doubled."""
+    import cv2
+
+    img = cv2.resize(render(cam(0)), (2 * W, 2 * H), interpolation=cv2.INTER_CUBIC)
+    big = features.extract_sift(img, max_image_size=max(W, H))
+    small = features.extract_sift(cv2.resize(features.to_gray(img), (W, H), interpolation=cv2.INTER_AREA))
+    assert len(big["keypoints"]) == len(small["keypoints"]) > 100
+    np.testing.assert_allclose(big["keypoints"], 2 * small["keypoints"], atol=1e-3)
+    np.testing.assert_allclose(big["scales"], 2 * small["scales"], rtol=1e-5)
+    assert np.array_equal(big["descriptors"], small["descriptors"])
+    assert len(features.extract_sift(img, max_image_size=0)["keypoints"]) != len(big["keypoints"])  # 0: full size
+
+
 @needs_dtu
 def test_sift_on_scan24_view():
     import cv2
