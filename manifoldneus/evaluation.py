@@ -57,6 +57,8 @@ class MeshParams:
                                    "5.25 / 4.67 / 5.01 (remeshed offline at 0.95: 5.45 / 4.71 / 4.77); 0 = off",
                                    lo=0.0, hi=1.0)
     visibility_size: int = param(128, "Image size (longest side, px) of the z-buffers that decide visibility", lo=16)
+    vertex_colours: bool = param(True, "Colour the mesh's vertices with the field's colour seen head-on (one field "
+                                 "evaluation per vertex); every export of the mesh keeps them")
     preview_size: int = param(320, "Side of each of the 3 preview renderings (px)", lo=64)
 
 

@@ -76,7 +76,7 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
         out.append(f"viewer:  {command('view')}")
     if "mesh" in report:
         mesh_dir = store.version_dir("mesh", version["mesh"])
-        out += [f"mesh:    {mesh_dir / MESH} (the method's unit-sphere frame, no colours)",
+        out += [f"mesh:    {mesh_dir / MESH} (the method's unit-sphere frame)",
                 f"cameras: {mesh_dir / 'colmap'} (COLMAP text model, the method's frame)"]
     if "evaluate" in report:
         out.append(f"report:  {command('report')}")

@@ -102,7 +102,10 @@ def run(ctx) -> None:
     import trimesh
 
     mesh = meshing.load_mesh(ctx.input("mesh") / artifacts.MESH)
-    if p.vertex_colours and len(mesh.faces):
+    coloured = mesh.visual.kind == "vertex"  # the mesh stage's colours (meshing.vertex_colours)
+    if not p.vertex_colours and coloured:
+        mesh.visual = trimesh.visual.ColorVisuals(mesh)
+    elif p.vertex_colours and len(mesh.faces) and not coloured:
         ids = np.flatnonzero(final["optimised"].astype(bool))
         trainer = evaluation.trainer_from_checkpoint(final_dir / artifacts.MODEL, posefree.subset_views(views, ids, w2c),
                                                      ctx.section("run").device)

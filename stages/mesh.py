@@ -10,7 +10,7 @@ silhouettes cut 3 % of the object, Chamfer 0.025 against 0.013), those in the vi
 (``anchors.object_min_seen``); the anchors' when the round kept no tracks.
 Output frame: the normalised object frame the method built (the middle of the anchors' points' robust box
 at the origin, or their median: ``anchors.gauge_centre``; the box's half diagonal at `anchors.gauge_radius`);
-the mesh (``mesh.ply``) and the poses (``colmap/`` text model, ``poses.zarr``) are both in it.
+the mesh (``mesh.ply``, vertex colours from the field: ``meshing.vertex_colours``) and the poses (``colmap/`` text model, ``poses.zarr``) are both in it.
 """
 from __future__ import annotations
 
@@ -40,6 +40,11 @@ def run(ctx) -> None:
         object_points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
     mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3], region,
                                 object_points)
+    if ctx.params.vertex_colours and len(mesh.faces):
+        import trimesh
+
+        colours = evaluation.field_vertex_colours(trainer, np.array(mesh.vertices), np.array(mesh.vertex_normals))
+        mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=colours)
     evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params, w2c=w2c[ids])
     io.save_arrays(ctx.out / artifacts.POSES, {"w2c": w2c, "placed": placed}, chunk_first=False)
     h, w = views.images.shape[1:3]

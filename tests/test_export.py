@@ -149,6 +149,8 @@ def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
                                np.sort(cameras.transform_points(gltf_from_world, ply.vertices), 0), atol=1e-5)
     colours = np.asarray(ply.visual.vertex_colors)[:, :3]
     assert ply.visual.kind == "vertex" and colours.std() > 0  # not one flat colour
+    # the mesh stage's own mesh carries them already; the export keeps them
+    assert model.visual.kind == "vertex" and np.array_equal(np.asarray(model.visual.vertex_colors)[:, :3], colours)
 
     # the SfM points: COLMAP's points3D and transforms.json's ply_file_path, in the same frame
     import pycolmap
