@@ -43,7 +43,9 @@ from manifoldneus.scenes import SceneError
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="pipeline.py", description=__doc__.split("\n")[0])
+    # "manifoldneus" when installed as a command, "pipeline.py" from the checkout
+    prog = "manifoldneus" if Path(sys.argv[0]).name == "manifoldneus" else "pipeline.py"
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
     p.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     p.add_argument("--version", action="version", version=f"manifoldneus {__version__} (torch "
                    f"{importlib.metadata.version('torch')}, Python {sys.version.split()[0]})")

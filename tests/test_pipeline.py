@@ -888,3 +888,18 @@ def test_every_key_reaches_exactly_the_stages_that_declare_it():
                 assert changed == declared, (name, f"{section}.{f.name}")
             checked += 1
     assert checked > 100
+
+
+def test_the_installed_command_is_the_pipelines_command_line(tmp_path):
+    """`make setup` installs `manifoldneus` beside the venv's python: the same CLI as pipeline.py."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    command = Path(sys.executable).parent / "manifoldneus"
+    assert command.is_file(), "pyproject.toml's [project.scripts] installs it (make setup)"
+    out = subprocess.run([str(command), "status", "--scene", "synthetic", "--artifacts", str(tmp_path / "art")],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.startswith("ingest") and "never computed" in out.stdout
+    usage = subprocess.run([str(command), "--help"], capture_output=True, text=True, timeout=120).stdout
+    assert usage.startswith("usage: manifoldneus ")
