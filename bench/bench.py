@@ -85,7 +85,7 @@ class Run:
     preset: str | None
     params: dict             # section -> resolved parameters of the run
     report: dict[str, str]   # stage -> "computed" | "reused" (by this run)
-    rows: dict[str, dict]    # stage -> manifest summary (see `collect`) + computed_this_sitting
+    rows: dict[str, dict]    # stage -> manifest summary (see `collect`) + computed_in_this_bench
     error: str | None = None  # the run failed: its rows are empty
 
 
@@ -175,7 +175,7 @@ def run_systems(scenes: list[str], systems: list[System], overrides: list[str], 
         params = pipeline.resolve_params(stages, overrides=spec.args["overrides"], preset=preset)
         rows = {} if outcome.error else collect(spec.scene, artifacts, preset, outcome.report, outcome.report.fingerprints)
         for stage, row in rows.items():  # a later preset reuses what an earlier one computed: still of this sitting
-            row["computed_this_sitting"] = (stage, row["fingerprint"]) in computed
+            row["computed_in_this_bench"] = (stage, row["fingerprint"]) in computed
         runs.setdefault(spec.scene, []).append(Run(preset, params, dict(outcome.report or {}), rows, outcome.error))
     return runs
 
@@ -185,8 +185,8 @@ def run_systems(scenes: list[str], systems: list[System], overrides: list[str], 
 
 def charged_stages(system: System, params: dict) -> tuple[str, ...]:
     """The stages whose time a system pays. Evaluation stages never count. The neural systems pay
-    for `reference` only when they start from its poses (`anchors.pose_init=reference`): the runner
-    computes it as a declared upstream of `anchors` either way."""
+    for `reference` only when they start from its poses (`anchors.pose_init=reference`, the only case
+    in which `anchors` reads it)."""
     if system.key == BASELINE:
         return ("ingest", "reference")
     uses_reference = params["anchors"].pose_init == "reference"
@@ -232,7 +232,7 @@ def system_result(system: System, run: Run, store: pipeline.Store) -> dict:
     rows = run.rows
     charged = charged_stages(system, run.params)
     stages = {s: {k: rows[s][k] for k in ("fingerprint", "wall_seconds", "cpu_seconds", "peak_rss_mib",
-                                          "computed_this_sitting")} for s in charged if s in rows}
+                                          "computed_in_this_bench")} for s in charged if s in rows}
     scores = {}
     if system.scored_by in rows:
         version = store.version_dir(system.scored_by, rows[system.scored_by]["fingerprint"])
@@ -519,7 +519,7 @@ def notes(result: dict) -> list[str]:
     """Footnotes that say how the systems table was measured."""
     systems = result["systems"]
     charged = [st for s in systems.values() for st in s["stages"].values()]
-    fresh = sum(st["computed_this_sitting"] for st in charged)
+    fresh = sum(st["computed_in_this_bench"] for st in charged)
     sitting = ("All of them are of this sitting." if fresh == len(charged) else
                f"{fresh} of the {len(charged)} are of this sitting, the others of the run that first computed the "
                "cached version (`--force-all` for a fresh sitting).")

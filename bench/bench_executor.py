@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark of the executors (issue 14): one reduced sweep run serially in this process and on a
+"""Benchmark of the executors: one reduced sweep run serially in this process and on a
 Dask LocalCluster of 1 and of 2 single-threaded workers, each from an empty artifacts folder.
 
     python -m bench.bench_executor [--table A3] [--scene synthetic] [--values 1.0 0.85 0.65 0.5]

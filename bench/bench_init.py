@@ -10,7 +10,7 @@ scored against the ground truth after a Sim3 alignment on the anchors: mean / ma
 (deg), mean centre error (scene units), anchors registered. Then the round-1 views are placed
 against the initialisation's own points (its tracks' 3D points, the way a successor round sees a
 scaffold) with the successors' solver, and scored in the same alignment. No training: this
-isolates the structure-from-motion part (issue 16's before/after table). Writes
+isolates the structure-from-motion part (a before/after table). Writes
 ``<out-dir>/init/<label>-<date>.json`` and prints a table.
 """
 from __future__ import annotations

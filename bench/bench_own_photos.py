@@ -11,7 +11,7 @@ starts at COLMAP's 1.2 x guess and the principal point at the centre, both self-
 training view before the anchors' initialisation; the object is found from the SfM points). Both are scored against the same ground truth: the focal length's error, the
 final poses, the mesh's Chamfer distance to the GT-pose reference surface (trained with the layout's
 calibration and masks in both runs), held-out PSNR on the object (the layout's masks). Prints mean
-+- std over seeds and the issue's targets (focal within 1 %, rotation <= 1.5x and Chamfer <= 2x the
++- std over seeds and the own-photos targets (focal within 1 %, rotation <= 1.5x and Chamfer <= 2x the
 calibrated masked run's), writes ``<out-dir>/own_photos/<label>-<date>.json``.
 """
 from __future__ import annotations

@@ -55,7 +55,7 @@ def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_r
     pipeline.run(scene, overrides=over, artifacts=artifacts)
     rows = bench.collect(scene, artifacts, None, TIMED)
     ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
-    out = {"seed": seed, "overrides": over, "rounds_iters": iters, "wall_seconds_sitting": time.time() - t0,
+    out = {"seed": seed, "overrides": over, "rounds_iters": iters, "wall_seconds_run": time.time() - t0,
            "stage_seconds": {s: r["wall_seconds"] for s, r in rows.items()}}
     if not ev.get("poses"):
         return {**out, "error": "no ground truth: nothing to score"}
@@ -190,7 +190,7 @@ def targets(scene: str, runs: list[dict]) -> list[dict]:
     rot = spread(r["final"]["rot_deg"] for r in ok)
     out.append({"target": "spread over seeds <= 0.02 deg", "value": rot["std"],
                 "met_every_seed": rot["std"] is not None and rot["std"] <= 0.02})
-    # issue 30's surface target: no worse than NeuS on sfm-all's poses at equal iterations (the seeds that train it)
+    # the surface: no worse than NeuS on sfm-all's poses at equal iterations (the seeds that train it)
     trained = [r for r in ok if r["sfm_all"].get("chamfer") is not None and r.get("chamfer") is not None]
     if trained:
         out.append({"target": "Chamfer <= NeuS on sfm-all's poses at equal iterations",

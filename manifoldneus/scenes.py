@@ -463,12 +463,7 @@ def _colmap_views(path: Path, p) -> dict:
         raise SceneError(f"{_colmap_model_dir(path)}: {len(clash)} view name(s) given by two images, e.g. "
                          f"{' and '.join(im.name for im, n in zip(images, names) if n == clash[0])}; rename one")
     pixels = [io.read_image(f) for f in files]
-    shapes = [im.shape[:2] for im in pixels]
-    if len(set(shapes)) != 1:
-        common = max(set(shapes), key=shapes.count)
-        odd = [f"{im.name} ({w}x{h})" for im, (h, w) in zip(images, shapes) if (h, w) != common]
-        raise SceneError(f"{folder}: {len(odd)} image(s) of the COLMAP model differ in size from the others' "
-                         f"{common[1]}x{common[0]}: {', '.join(odd[:5])}; this pipeline needs one image size")
+    _refuse_mixed_sizes(pixels, [im.name for im in images], folder, "image(s) of the COLMAP model")
     model_dir = _colmap_model_dir(path)
     K = np.stack([_colmap_K(rec.cameras[im.camera_id]) for im in images])
     for i, im in enumerate(images):
@@ -478,18 +473,23 @@ def _colmap_views(path: Path, p) -> dict:
     return {"images": np.stack(pixels), "K": K, "names": names}
 
 
+def _refuse_mixed_sizes(images: list, labels: list[str], folder: Path, what: str = "image(s)") -> None:
+    """A SceneError naming the images (``labels``) whose size is not the most common one."""
+    shapes = [im.shape[:2] for im in images]
+    if len(set(shapes)) != 1:
+        common = max(set(shapes), key=shapes.count)
+        odd = [f"{label} ({w}x{h})" for label, (h, w) in zip(labels, shapes) if (h, w) != common]
+        raise SceneError(f"{folder}: {len(odd)} {what} differ in size from the others' {common[1]}x{common[0]}: "
+                         f"{', '.join(odd[:5])}{' ...' if len(odd) > 5 else ''}; resize them to one size or remove them")
+
+
 def _plain_views(path: Path, p) -> dict:
     folder = path / "images" if (path / "images").is_dir() else path
     files = _list_images(folder)
     if not files:
         raise SceneError(f"{folder}: no images ({', '.join(IMAGE_EXTENSIONS[:4])}, ...)")
     images = [io.read_image(f) for f in files]
-    shapes = [im.shape[:2] for im in images]
-    if len(set(shapes)) != 1:
-        common = max(set(shapes), key=shapes.count)
-        odd = [f"{f.name} ({w}x{h})" for f, (h, w) in zip(files, shapes) if (h, w) != common]
-        raise SceneError(f"{folder}: {len(odd)} image(s) differ in size from the others' {common[1]}x{common[0]}: "
-                         f"{', '.join(odd[:5])}{' ...' if len(odd) > 5 else ''}; resize them to one size or remove them")
+    _refuse_mixed_sizes(images, [f.name for f in files], folder)
     h, w = images[0].shape[:2]
     fx, fy, cx, cy, source = _estimate_intrinsics(files[0], w, h)  # ingest.intrinsics, when given, replaces it
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)

@@ -37,13 +37,13 @@ from runner.execute import Context, RunReport, cli_hint, run  # noqa: E402
 from runner.fingerprint import code_hash, compute_fingerprints, own_ingredients  # noqa: E402
 from runner.inspect import camera_line, posed_lines, run_summary, show, status, verify, view  # noqa: E402
 from runner.params import resolve_params, stage_params  # noqa: E402
-from runner.registry import Stage, load_stages, select, upstream_closure  # noqa: E402
+from runner.registry import Stage, for_params, load_stages, select, upstream_closure  # noqa: E402
 from runner.store import Store, gc  # noqa: E402
 
 __all__ = [
     "DEFAULT_ARTIFACTS", "DEFAULT_PARAMS", "LOG", "MANIFEST", "ROOT", "Context", "ParamError", "PipelineError",
     "RunReport", "SceneError", "Stage", "Store", "Terminated", "camera_line", "cli_hint", "code_hash",
-    "compute_fingerprints", "gc", "load_stages", "own_ingredients", "posed_lines", "resolve_params",
+    "compute_fingerprints", "for_params", "gc", "load_stages", "own_ingredients", "posed_lines", "resolve_params",
     "resolve_scene", "run", "run_summary", "select", "show", "stage_params", "status", "upstream_closure", "verify",
     "view",
 ]

@@ -19,7 +19,7 @@ from manifoldneus.scenes import resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, DEFAULT_PARAMS, LOG, MANIFEST, PipelineError
 from runner.fingerprint import chain_fingerprints, content_digest, file_digests, own_ingredients
 from runner.params import DeclaredKeys, resolve_params
-from runner.registry import Stage, load_stages, select
+from runner.registry import Stage, for_params, load_stages, select
 from runner.store import Store, _process
 
 LIBRARIES = ("numpy", "scipy", "torch", "cv2", "pycolmap", "skimage", "trimesh", "zarr", "roma")
@@ -275,6 +275,7 @@ def run(
             raise PipelineError(f"unknown stage {f!r} for --force (stages: {', '.join(stages)})")
     scene = resolve_scene(scene_name, data_root)
     resolved = resolve_params(stages, params_path, overrides, profile, preset)
+    stages = for_params(stages, resolved)
     store = Store(artifacts, scene.name, preset)
     own = own_ingredients(stages, resolved, scene)
     selected = select(stages, until, only)

@@ -93,6 +93,7 @@ def _recipes(spec: RunSpec) -> tuple[tuple, dict[str, str], bool]:
     stages = runner.load_stages()
     resolved = runner.resolve_params(stages, a.get("params_path", runner.DEFAULT_PARAMS), a.get("overrides", ()),
                                        a.get("profile"), a.get("preset"))
+    stages = runner.for_params(stages, resolved)
     scene = runner.resolve_scene(spec.scene, a.get("data_root"))
     fps = runner.compute_fingerprints(stages, resolved, scene)
     selected = runner.select(stages, a.get("until"), a.get("only"))

@@ -13,7 +13,7 @@ from runner.common import DEFAULT_ARTIFACTS, DEFAULT_PARAMS, PipelineError
 from runner.execute import RunReport, _refuse_damaged, cli_hint
 from runner.fingerprint import compute_fingerprints
 from runner.params import resolve_params
-from runner.registry import load_stages
+from runner.registry import for_params, load_stages
 from runner.store import MANIFEST, Store
 
 
@@ -163,6 +163,7 @@ def status(scene_name, overrides=(), profile=None, preset=None, artifacts=DEFAUL
     stages = load_stages()
     scene = resolve_scene(scene_name, data_root)
     resolved = resolve_params(stages, params_path, overrides, profile, preset)
+    stages = for_params(stages, resolved)
     store = Store(artifacts, scene.name, preset)
     fps = compute_fingerprints(stages, resolved, scene, store)
     return {name: explain(name, fps, store) for name in stages}

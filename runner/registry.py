@@ -1,8 +1,9 @@
 """The stages and their DAG: each stage module's declarations (UPSTREAM, SECTIONS, OUTPUTS, Params and,
-optionally, READS),
+optionally, READS and UPSTREAM_IF),
 read from ``stages.STAGES``, and which of them a run brings up to date."""
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import types
 from dataclasses import dataclass, field
@@ -18,6 +19,8 @@ class Stage:
     sections: tuple[str, ...]
     outputs: tuple[str, ...]
     reads: dict[str, tuple[str, ...]] = field(default_factory=dict)  # upstream -> the files of its version run() reads (READS); else all of them
+    # upstream -> (key of the stage's own section, value): read only when that key has that value (UPSTREAM_IF)
+    upstream_if: dict[str, tuple[str, object]] = field(default_factory=dict)
 
     @property
     def params_cls(self):
@@ -44,7 +47,11 @@ def load_stages() -> dict[str, Stage]:
     for name in registry.STAGES:
         module = importlib.import_module(f"stages.{name}")
         reads = {u: tuple(files) for u, files in getattr(module, "READS", {}).items()}
-        stage = Stage(name, module, tuple(module.UPSTREAM), tuple(module.SECTIONS), tuple(module.OUTPUTS), reads)
+        stage = Stage(name, module, tuple(module.UPSTREAM), tuple(module.SECTIONS), tuple(module.OUTPUTS), reads,
+                      dict(getattr(module, "UPSTREAM_IF", {})))
+        if set(stage.upstream_if) - set(stage.upstream):
+            raise PipelineError(f"stage {name}: UPSTREAM_IF names {sorted(set(stage.upstream_if) - set(stage.upstream))}, "
+                                "not upstream")
         if set(reads) - set(stage.upstream):
             raise PipelineError(f"stage {name}: READS names {sorted(set(reads) - set(stage.upstream))}, not upstream")
         for up in stage.upstream:
@@ -55,6 +62,17 @@ def load_stages() -> dict[str, Stage]:
                 f"stage {name} may not read ground truth: only {sorted(registry.GROUND_TRUTH_READERS)} can"
             )
         out[name] = stage
+    return out
+
+
+def for_params(stages: dict[str, Stage], resolved: dict) -> dict[str, Stage]:
+    """The stages as a run with the ``resolved`` parameters has them: a conditional upstream
+    (``UPSTREAM_IF``) only where the stage's own parameter asks for it, so that neither its version
+    nor its parameters enter the stage's fingerprint otherwise, and a run does not compute it for it."""
+    out = {}
+    for name, s in stages.items():
+        drop = {u for u, (key, value) in s.upstream_if.items() if getattr(resolved[s.sections[0]], key) != value}
+        out[name] = dataclasses.replace(s, upstream=tuple(u for u in s.upstream if u not in drop)) if drop else s
     return out
 
 

@@ -119,6 +119,7 @@ class Params:
 
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "reference")
+UPSTREAM_IF = {"reference": ("pose_init", "reference")}  # pycolmap's SfM only where the anchors start from it
 SECTIONS = ("anchors", "train", "field", "render", "loss", "gate", "correspondence", "run")
 OUTPUTS = ("round_0", artifacts.INITIAL_POSES)
 
@@ -148,7 +149,7 @@ def reference_poses(reference_dir, n: int, gauge_radius: float, gauge_centre: st
     return cameras.transform_w2c(ref["w2c"], s, np.eye(3), -s * centre), ref["registered"].astype(bool)
 
 
-def initial_poses(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int], p: Params, reference_dir: Path
+def initial_poses(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int], p: Params, reference_dir: Path | None
                   ) -> tuple[np.ndarray, posefree.SceneInputs, dict, dict]:
     """(w2c [N,4,4] of the anchors (identity elsewhere), the inputs with the K and lens distortion the
     poses belong to (:func:`manifoldneus.posefree.with_intrinsics`), what was done,
@@ -367,7 +368,7 @@ def run(ctx) -> None:
     n = len(inputs.names)
     env = InitEnv(ctx.log, ctx.log_path, ctx.section("run").seed)
     # every round uses the K and lens distortion the initial poses belong to
-    w2c0, inputs, init_info, sfm_points = initial_poses(env, inputs, anchors, p, ctx.input("reference"))
+    w2c0, inputs, init_info, sfm_points = initial_poses(env, inputs, anchors, p, ctx.input("reference") if p.pose_init == "reference" else None)
     if max(p.perturb_rot_deg, default=0.0) > 0 or p.perturb_centre_frac > 0:
         w2c0[anchors] = perturbed(w2c0[anchors], p, ctx.section("run").seed)
         init_info["perturbed"] = {"rot_deg": list(p.perturb_rot_deg), "centre_frac": p.perturb_centre_frac}

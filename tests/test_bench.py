@@ -60,7 +60,7 @@ def test_json_has_every_system_with_finite_pose_errors(tiny_bench):
         assert systems[key]["psnr_aligned"] > 0  # scored again after test-time alignment
     # the front-end is one version, computed once in this sitting and charged to every NeuS system
     features = [systems[key]["stages"]["features"] for key in NEURAL_SYSTEMS]
-    assert len({f["fingerprint"] for f in features}) == 1 and all(f["computed_this_sitting"] for f in features)
+    assert len({f["fingerprint"] for f in features}) == 1 and all(f["computed_in_this_bench"] for f in features)
     assert "reference" in systems["neus-colmap"]["stages"] and "reference" not in systems["manifoldneus"]["stages"]
     # sfm-all holds the mapper's poses of every training view: its final round is its initialisation
     store = bench.pipeline.Store(tiny_bench[0].parent / "artifacts", "synthetic", "sfm-all")

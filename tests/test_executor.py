@@ -1,4 +1,4 @@
-"""Multi-run commands on Dask (issue 14): a LocalCluster of 2 worker processes gives the serial
+"""Multi-run commands on Dask: a LocalCluster of 2 worker processes gives the serial
 sweep's JSON, a run that fails does not stop the other, two processes never compute one version
 twice, cuda runs go to the worker that offers a GPU, and stages that runs share are computed once
 before they fan out."""
@@ -22,7 +22,7 @@ distributed = pytest.importorskip("distributed")
 
 # What differs between two sittings of the same sweep: times, paths, which run computed a shared
 # stage, and the versions after the first trained stage (its files record its training time).
-SITTING = ("date", "total_wall_seconds", "artifacts", "markdown", "json", "executor", "workers", "wall_seconds",
+RUN_FACTS = ("date", "total_wall_seconds", "artifacts", "markdown", "json", "executor", "workers", "wall_seconds",
            "cost_seconds", "stages", "fingerprints")
 
 
@@ -40,11 +40,11 @@ def cluster():
         yield "dask://" + local.scheduler_address.removeprefix("tcp://"), gpu_worker
 
 
-def without_sitting(value):
+def without_run_facts(value):
     if isinstance(value, dict):
-        return {k: without_sitting(v) for k, v in value.items() if k not in SITTING}
+        return {k: without_run_facts(v) for k, v in value.items() if k not in RUN_FACTS}
     if isinstance(value, list):
-        return [without_sitting(v) for v in value]
+        return [without_run_facts(v) for v in value]
     return value
 
 
@@ -59,7 +59,7 @@ def test_a_sweep_on_a_local_cluster_gives_the_serial_json(tmp_path, capsys):
     serial, dask = (json.loads(Path(results[n]["json"]).read_text()) for n in ("serial", "dask"))
     assert dask["executor"] == "dask" and [r["label"] for r in dask["settings"]] == ["alpha = 0.65", "alpha = 0.35"]
     assert all("error" not in r for r in dask["settings"])
-    assert without_sitting(dask) == without_sitting(serial)  # pose errors, rounds, views, schedule: the same
+    assert without_run_facts(dask) == without_run_facts(serial)  # pose errors, rounds, views, schedule: the same
     for ours, theirs in zip(dask["settings"], serial["settings"]):  # from the same versions
         assert ours["fingerprints"]["anchors"] == theirs["fingerprints"]["anchors"]
     # the stages both settings share were computed before they fanned out

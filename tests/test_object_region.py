@@ -1,4 +1,4 @@
-"""Unmasked captures (issue 13 item 2): the object found from the cameras and the SfM points alone,
+"""Unmasked captures: the object found from the cameras and the SfM points alone,
 and the mesh cropped to it. Geometry on generated points, then the pipeline on the synthetic scene
 standing on a textured floor, without masks (CPU, tiny iteration counts)."""
 from __future__ import annotations

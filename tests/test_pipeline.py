@@ -429,7 +429,7 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path):
     import sys
 
     artifacts = tmp_path / "artifacts"
-    cmd = [sys.executable, str(pipeline.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "anchors",
+    cmd = [sys.executable, str(pipeline.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "reference",
            "--artifacts", str(artifacts), *sum((["--set", s] for s in TINY), [])]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     seen = []
@@ -578,6 +578,29 @@ def test_context_refuses_undeclared_inputs(artifacts):
                            pipeline.resolve_scene("synthetic"), None)
     with pytest.raises(pipeline.PipelineError, match="declared upstream"):
         ctx.input("ground_truth")
+
+
+def test_the_anchors_read_pycolmaps_sfm_only_when_they_start_from_it(artifacts):
+    """`reference` is an upstream of `anchors` only with anchors.pose_init = reference: otherwise neither
+    its version nor its parameters enter the anchors' fingerprint, and `--until anchors` does not run it."""
+    stages = pipeline.load_stages()
+    scene = pipeline.resolve_scene("synthetic")
+
+    def anchors_fingerprint(*over):
+        resolved = pipeline.resolve_params(stages, overrides=[*FAST_SYNTH, *over])
+        return pipeline.compute_fingerprints(pipeline.for_params(stages, resolved), resolved, scene)["anchors"]
+
+    plain = anchors_fingerprint()
+    assert "reference" not in plain["upstream"]
+    assert anchors_fingerprint("reference.num_threads=2")["fingerprint"] == plain["fingerprint"]
+    from_reference = anchors_fingerprint("anchors.pose_init=reference")
+    assert "reference" in from_reference["upstream"]
+    assert anchors_fingerprint("anchors.pose_init=reference", "reference.num_threads=2")["fingerprint"] != \
+        from_reference["fingerprint"]
+    assert "reference" in pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)  # still a stage
+    selected = pipeline.select(pipeline.for_params(stages, pipeline.resolve_params(stages, overrides=FAST_SYNTH)),
+                               "anchors", None)
+    assert "reference" not in selected and "schedule" in selected
 
 
 def test_missing_scene_and_data_root_say_where_they_looked(tmp_path):

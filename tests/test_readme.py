@@ -1,4 +1,4 @@
-"""README.md is a short user's guide whose figures come from the bench JSON (issue 33).
+"""README.md is a short user's guide whose figures come from the bench JSON.
 
 - at most 250 lines;
 - its generated parts (results block, headline) equal what `make results` writes from bench/*.json;
@@ -179,3 +179,19 @@ def test_the_headline_sets_its_rotation_errors_beside_the_alignment_free_ones(tm
         shown = "which no alignment changes" in text
         assert shown != changed
         assert all((f"{v:.3f} ± " in text or f"{v:.3f} for" in text) == shown for v in pre_r.values())
+
+
+def test_the_project_speaks_of_itself_by_date():
+    """Docs, code, bench records and file names date what they say (2026-11-27); none names a work
+    session by ordinal, an issue by number, or a sitting in a JSON field or a path."""
+    ordinal = (r"first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|eleventh|twelfth|thirteenth|"
+               r"fourteenth|fifteenth|sixteenth|seventeenth|eighteenth|nineteenth|twentieth|\d+(st|nd|rd|th)")
+    sitting = "sitt" + "ing"  # spelled apart: this line is scanned too
+    banned = re.compile(rf"\b({ordinal})[ -]session\b|\bissues? #?\d+\b|_{sitting}\b|\b{sitting}_", re.IGNORECASE)
+    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    bad = [f for f in files if re.search(r"session|sitting|issue-?\d", f, re.IGNORECASE)]
+    for f in files:
+        if f.endswith((".md", ".py", ".json", ".yaml", ".toml")) or f in ("Makefile", ".ci/run"):
+            text = (ROOT / f).read_text(errors="replace")
+            bad += [f"{f}:{text.count(chr(10), 0, m.start()) + 1}: {m.group(0)}" for m in banned.finditer(text)]
+    assert not bad, "\n".join(bad[:20])

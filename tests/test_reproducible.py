@@ -1,6 +1,6 @@
 """One fingerprint, one result: the pipeline run twice from an empty cache writes the same
 artifacts, and a run interrupted inside a successor round and resumed from its checkpoint ends
-exactly where the uninterrupted run does (issue 11, item 3). Tiny synthetic scene, CPU."""
+exactly where the uninterrupted run does. Tiny synthetic scene, CPU."""
 from __future__ import annotations
 
 import numpy as np

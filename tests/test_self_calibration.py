@@ -1,4 +1,4 @@
-"""Self-calibration (issue 13): photos whose focal length is a guess. Before the anchors'
+"""Self-calibration: photos whose focal length is a guess. Before the anchors'
 initialisation, COLMAP's bundle adjustment on every training view refines the shared camera's focal
 length and principal point, and every later stage uses the refined K. Tiny synthetic scene without masks, CPU."""
 from __future__ import annotations
