@@ -33,8 +33,10 @@ import errno
 import logging
 import math
 import os
+import pickle
 import shutil
 import time
+import types
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -117,6 +119,20 @@ def keep_freed_memory(threshold: int = 1 << 30) -> bool:
         return bool(libc.mallopt(m_mmap_threshold, threshold)) and bool(libc.mallopt(m_trim_threshold, threshold))
     except (OSError, AttributeError):
         return False
+
+
+class _ValuePickler(pickle.Pickler):
+    """A pickler without its memo: the bytes depend on the values alone, not on which objects happen to be
+    shared (a trainer resumed from a checkpoint holds equal values in other objects), so one training
+    writes one file however often it was interrupted. The trainer's state has no cycles."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.fast = True
+
+
+_value_pickle = types.SimpleNamespace(Pickler=_ValuePickler, Unpickler=pickle.Unpickler, load=pickle.load,
+                                      __name__="pickle")
 
 
 def lr_factor(step: int, total: int, warmup: int, min_ratio: float) -> float:
@@ -331,6 +347,7 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if self.device.type == "cuda" else None,
             "loss_ema": self._loss_ema,
+            "loss_status": dict(self.loss_status),
             "history": list(self.history),
             "events": list(self.events),
             "extra": copy.deepcopy(self.extra_state),
@@ -352,6 +369,7 @@ class Trainer:
             if s.get("cuda_rng") is not None and self.device.type == "cuda":
                 torch.cuda.set_rng_state_all([state.cpu() for state in s["cuda_rng"]])
         self._loss_ema = s.get("loss_ema")
+        self.loss_status = dict(s.get("loss_status", {}))
         self.history = list(s.get("history", []))
         self.events = list(s.get("events", []))
         self.extra_state = copy.deepcopy(s.get("extra", {}))
@@ -362,7 +380,7 @@ class Trainer:
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
         try:
-            torch.save(self.state_dict(), str(tmp))
+            torch.save(self.state_dict(), str(tmp), pickle_module=_value_pickle)
         except BaseException as e:
             tmp.unlink(missing_ok=True)  # a partial checkpoint is only lost space (on a full disk, the most)
             if isinstance(e, RuntimeError) and shutil.disk_usage(tmp.parent).free < (64 << 20):
@@ -508,8 +526,7 @@ class Trainer:
         if self.step % self.tp.log_every == 0 or self.step == self._target:
             # recorded before the snapshot below, so a checkpoint's history includes its own step
             info = {"step": self.step, "loss": lv, **{f"loss_{k}": v for k, v in terms.items()},
-                    "inv_s": float(self.field.inv_s().detach()), "lr": self.opt.param_groups[0]["lr"],
-                    "elapsed_s": self.clock() - (self._t_train if self._t_train is not None else self.clock())}
+                    "inv_s": float(self.field.inv_s().detach()), "lr": self.opt.param_groups[0]["lr"]}
             self.history.append(info)
             if self.recorder is not None:
                 self.recorder(self, info)
@@ -551,8 +568,9 @@ class Trainer:
             last = r
             info = r["info"]
             if info is not None:
+                # the time goes to the log, not the history: a resumed run must write the same files
                 log.info("step %d loss %.4f %s s=%.1f (%.0f s)", self.step, r["loss"],
-                         " ".join(f"{k}={v:.4f}" for k, v in r["terms"].items()), info["inv_s"], info["elapsed_s"])
+                         " ".join(f"{k}={v:.4f}" for k, v in r["terms"].items()), info["inv_s"], self.clock() - t0)
                 if self.progress is not None:
                     self.progress(self.step, info)
                 if callback is not None and callback(self, info):
@@ -561,7 +579,9 @@ class Trainer:
                 log.info("time budget %.0f s reached at step %d", budget, self.step)
                 break
         self.field.eval()
-        return {"steps": self.step, "seconds": time.time() - t_wall, "final_loss": last.get("loss"),
+        # a run resumed at its last step trains no step here: its final loss is its history's last
+        final = last.get("loss", self.history[-1]["loss"] if self.history else None)
+        return {"steps": self.step, "seconds": time.time() - t_wall, "final_loss": final,
                 "loss_status": self.loss_status, "rollbacks": self.rollbacks, "events": list(self.events),
                 "background": self.bg_kind}
 

@@ -740,7 +740,7 @@ def test_a_checkpoint_that_does_not_fit_leaves_the_previous_one(tmp_path, monkey
     tr.save(path)
     before = path.read_bytes()
 
-    def partial(obj, f):
+    def partial(obj, f, **kwargs):
         Path(f).write_bytes(b"\0" * 1000)
         raise RuntimeError("[enforce fail at inline_container.cc:672] . PytorchStreamWriter failed writing file")
 

@@ -18,7 +18,7 @@ pytestmark = bitwise_on_cpu
 
 # a checkpoint every 10 iterations, so the interruption below falls between two of them
 REPRO = [*TINY, "train.ckpt_every=10"]
-UNTIL = "successors"
+UNTIL = "successors"  # and "reference" beside it: pycolmap is part of the fingerprint-one-result promise
 
 
 def version(root, stage):
@@ -44,6 +44,9 @@ def outputs(root) -> dict:
 def assert_same(a: dict, b: dict) -> None:
     assert a.keys() == b.keys()
     for key in a:
+        if isinstance(a[key], dict):
+            assert a[key] == b[key], f"{key} differs: {a[key]} != {b[key]}"
+            continue
         xs, ys = (a[key], b[key]) if isinstance(a[key], list) else ([a[key]], [b[key]])
         assert len(xs) == len(ys), key
         for x, y in zip(xs, ys):
@@ -53,13 +56,19 @@ def assert_same(a: dict, b: dict) -> None:
 @pytest.fixture(scope="module")
 def first(tmp_path_factory):
     root = tmp_path_factory.mktemp("repro") / "first"
-    pipeline.run("synthetic", until=UNTIL, overrides=REPRO, artifacts=root)
-    return outputs(root)
+    pipeline.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=root)
+    return {**outputs(root), "content": content(root)}
+
+
+def content(root) -> dict:
+    """The content digest of each stage's version: equal bytes, equal digests, so later stages reuse."""
+    store = pipeline.Store(root, "synthetic")
+    return {stage: store.content(stage, store.current(stage)) for stage in ("anchors", UNTIL)}
 
 
 def test_two_runs_from_an_empty_cache_write_the_same_artifacts(first, tmp_path):
-    pipeline.run("synthetic", until=UNTIL, overrides=REPRO, artifacts=tmp_path / "second")
-    assert_same(first, outputs(tmp_path / "second"))
+    pipeline.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=tmp_path / "second")
+    assert_same(first, {**outputs(tmp_path / "second"), "content": content(tmp_path / "second")})
 
 
 def test_interrupted_and_resumed_equals_uninterrupted(first, tmp_path, monkeypatch):
@@ -76,7 +85,7 @@ def test_interrupted_and_resumed_equals_uninterrupted(first, tmp_path, monkeypat
 
     monkeypatch.setattr(Trainer, "train_step", killed)
     with pytest.raises(KeyboardInterrupt):
-        pipeline.run("synthetic", until=UNTIL, overrides=REPRO, artifacts=root)
+        pipeline.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=root)
     assert hits == [15]
     store = pipeline.Store(root, "synthetic")
     assert store.current(UNTIL) is None  # nothing published
@@ -84,10 +93,10 @@ def test_interrupted_and_resumed_equals_uninterrupted(first, tmp_path, monkeypat
     assert {p.name for p in ckpt_dir.iterdir()} >= {"round_1.pt", "round_2.pt"}
 
     monkeypatch.setattr(Trainer, "train_step", step)
-    pipeline.run("synthetic", until=UNTIL, overrides=REPRO, artifacts=root)
+    pipeline.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=root)
     log = (version(root, UNTIL) / "log.txt").read_text()
     assert "round 2: resumed from round_2.pt at step 10" in log
-    assert_same(first, outputs(root))
+    assert_same(first, {**outputs(root), "content": content(root)})  # the same bytes: later stages reuse theirs
 
 
 def test_sigkill_at_random_moments_then_rerun(first, tmp_path):
