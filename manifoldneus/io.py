@@ -74,6 +74,15 @@ def save_json(path: Path, obj) -> None:
     Path(path).write_text(json.dumps(_finite(obj), indent=2, default=_jsonable, allow_nan=False) + "\n")
 
 
+def without_keys(value, keys):
+    """``value`` (JSON-like: dicts, lists, scalars) without the dict keys ``keys`` at any depth."""
+    if isinstance(value, dict):
+        return {k: without_keys(v, keys) for k, v in value.items() if k not in keys}
+    if isinstance(value, list):
+        return [without_keys(v, keys) for v in value]
+    return value
+
+
 def write_text_atomic(path: Path, text: str) -> None:
     """Write ``path`` whole or not at all: a full disk or a kill mid-write leaves the earlier file (if
     any) and no partial one (a temporary file beside it, renamed into place)."""

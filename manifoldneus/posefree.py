@@ -353,20 +353,11 @@ def depth_at_fn(rnd: Round):
 RUN_FACTS = ("seconds", "seconds_total", "resumed_from_step")  # of one run, not of its result (the manifest has times)
 
 
-def without_run_facts(value):
-    """``value`` (JSON-like) without the keys :data:`RUN_FACTS` at any depth."""
-    if isinstance(value, dict):
-        return {k: without_run_facts(v) for k, v in value.items() if k not in RUN_FACTS}
-    if isinstance(value, list):
-        return [without_run_facts(v) for v in value]
-    return value
-
-
 def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> None:
     """The round's artifact (module doc); ``info`` goes to round.json without its :data:`RUN_FACTS`, so that
     two runs, or a run resumed from a checkpoint, write the same bytes and later stages reuse theirs."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    info = without_run_facts(info)
+    info = io.without_keys(info, RUN_FACTS)
     n_views = len(placed)
     w2c = rnd.poses_all()
     w2c[~placed] = np.eye(4)

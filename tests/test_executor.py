@@ -14,13 +14,14 @@ import pytest
 
 import pipeline
 from bench import sweep
+from manifoldneus import io
 from runner import executor
 from tests.test_pipeline import FAST_SYNTH
 from tests.test_sweep import SWEEP_TINY
 
 distributed = pytest.importorskip("distributed")
 
-# What differs between two sittings of the same sweep: times, paths, which run computed a shared
+# What differs between two runs of the same sweep: times, paths, which run computed a shared
 # stage, and the versions after the first trained stage (its files record its training time).
 RUN_FACTS = ("date", "total_wall_seconds", "artifacts", "markdown", "json", "executor", "workers", "wall_seconds",
            "cost_seconds", "stages", "fingerprints")
@@ -40,14 +41,6 @@ def cluster():
         yield "dask://" + local.scheduler_address.removeprefix("tcp://"), gpu_worker
 
 
-def without_run_facts(value):
-    if isinstance(value, dict):
-        return {k: without_run_facts(v) for k, v in value.items() if k not in RUN_FACTS}
-    if isinstance(value, list):
-        return [without_run_facts(v) for v in value]
-    return value
-
-
 def test_a_sweep_on_a_local_cluster_gives_the_serial_json(tmp_path, capsys):
     results = {}
     for name, kwargs in (("serial", {}), ("dask", {"executor_name": "dask", "workers": 2})):
@@ -59,7 +52,8 @@ def test_a_sweep_on_a_local_cluster_gives_the_serial_json(tmp_path, capsys):
     serial, dask = (json.loads(Path(results[n]["json"]).read_text()) for n in ("serial", "dask"))
     assert dask["executor"] == "dask" and [r["label"] for r in dask["settings"]] == ["alpha = 0.65", "alpha = 0.35"]
     assert all("error" not in r for r in dask["settings"])
-    assert without_run_facts(dask) == without_run_facts(serial)  # pose errors, rounds, views, schedule: the same
+    # pose errors, rounds, views, schedule: the same
+    assert io.without_keys(dask, RUN_FACTS) == io.without_keys(serial, RUN_FACTS)
     for ours, theirs in zip(dask["settings"], serial["settings"]):  # from the same versions
         assert ours["fingerprints"]["anchors"] == theirs["fingerprints"]["anchors"]
     # the stages both settings share were computed before they fanned out
