@@ -276,11 +276,10 @@ class Round:
         bar = progress(total=self.iters, desc=desc, initial=t.step)
 
         def callback(trainer, info):
-            bar.update(info["step"] - bar.n)
             bar.set_postfix(loss=f"{info['loss']:.4f}")
 
         started = time.time()
-        summary = t.train(callback=callback)
+        summary = t.train(callback=callback, on_step=lambda step: bar.update(step - bar.n))  # the bar moves every step
         bar.close()
         if self.polish is not None and self.polish.steps > 0:
             summary["polish"] = self._polish(log, desc, progress)

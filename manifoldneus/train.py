@@ -547,10 +547,10 @@ class Trainer:
             return why
         return f"{why} in {self.tp.ckpt_every} iterations (pose_jump_deg = {self.tp.pose_jump_deg:g})"
 
-    def train(self, iters: int | None = None, time_budget_s: float | None = None, callback=None) -> dict:
+    def train(self, iters: int | None = None, time_budget_s: float | None = None, callback=None, on_step=None) -> dict:
         """Train until ``iters`` (default ``run.iters``) total iterations or the time budget.
-        ``callback(trainer, info)`` runs every ``log_every`` iterations (and may return True to stop).
-        Returns a summary dict."""
+        ``callback(trainer, info)`` runs every ``log_every`` iterations (and may return True to stop);
+        ``on_step(step)`` after every iteration (a progress bar's tick). Returns a summary dict."""
         iters = self.run.iters if iters is None else iters
         budget = self.tp.time_budget_s if time_budget_s is None else time_budget_s
         t0 = self.clock()
@@ -566,6 +566,8 @@ class Trainer:
             if r.get("rollback"):
                 continue
             last = r
+            if on_step is not None:
+                on_step(self.step)
             info = r["info"]
             if info is not None:
                 # the time goes to the log, not the history: a resumed run must write the same files
