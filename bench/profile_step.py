@@ -5,7 +5,9 @@ Trains on a scene's views with its ground-truth poses, poses learned as the anch
 (every 8th view held out), the project's default field, render and train parameters at the fast
 profile's resolution. After ``--warm`` steps (the field has formed a surface) it times ``--steps``
 steps (wall and process CPU seconds), then profiles ``--profile-steps`` more with torch.profiler and
-groups them by the trainer's labelled parts. ``--code DIR`` runs another checkout's manifoldneus
+groups them by the trainer's labelled parts, counts the operator launches (leaf aten calls) and the
+host reads (``.item()``, ``float(t)``, ``.cpu()``, ...: each a synchronisation on a GPU) a step makes, and
+the samples it evaluates. ``--code DIR`` runs another checkout's manifoldneus
 (the same script measures old and new code in one sitting). Several seeds: mean and spread.
 
     .venv/bin/python -m bench.profile_step --scene scan24 --seeds 0,1,2
@@ -19,6 +21,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import collections
+import contextlib
 import json
 import resource
 import subprocess
@@ -87,9 +91,12 @@ def one_seed(args, seed: int) -> dict:
         b = tr.sample_batch(args.rays)
         out = render_rays(tr.field, b["o"], b["d"], tr.rp, cache=tr.cache, background=tr.background, perturb=True)
     evaluated = out.get("evaluated", out["t"].numel()) / args.rays
-    with profile(activities=[ProfilerActivity.CPU], with_flops=True) as prof:
+    with counting_host_reads() as reads, profile(activities=[ProfilerActivity.CPU], with_flops=True) as prof:
         for _ in range(args.profile_steps):
             tr.train_step()
+    # operator launches: the aten calls with no aten call inside (on a GPU, about one kernel each)
+    launches = sum(1 for e in prof.events() if e.name.startswith("aten::")
+                   and not any(c.name.startswith("aten::") for c in e.cpu_children)) / args.profile_steps
     events = prof.key_averages()
     parts = {e.key: e.cpu_time_total / 1e3 / args.profile_steps for e in events if e.key in PARTS}
     flops = sum(e.flops for e in events if e.flops) / args.profile_steps
@@ -98,7 +105,37 @@ def one_seed(args, seed: int) -> dict:
     return {"seed": seed, "wall_ms": 1e3 * wall, "cpu_ms": 1e3 * cpu, "rays_per_cpu_s": args.rays / cpu,
             "rays_per_wall_s": args.rays / wall, "evaluated_per_ray": evaluated,
             "samples_per_cpu_s": evaluated * args.rays / cpu, "inv_s": float(tr.field.inv_s().detach()),
-            "parts_ms": parts, "top_ops_ms": dict(ops), "gflop_per_step_matmul": flops / 1e9}
+            "parts_ms": parts, "top_ops_ms": dict(ops), "gflop_per_step_matmul": flops / 1e9,
+            "samples_per_step": evaluated * args.rays, "launches_per_step": launches,
+            "host_reads_per_step": {k: v / args.profile_steps for k, v in sorted(reads.items())}}
+
+
+HOST_READS = ("item", "tolist", "cpu", "numpy", "__float__", "__int__", "__bool__")
+
+
+@contextlib.contextmanager
+def counting_host_reads():
+    """Counts, per Tensor method of :data:`HOST_READS`, the calls made inside: on a GPU each one waits for
+    the device (a host-device synchronisation); on the CPU the same calls mark the loop's code paths that
+    would."""
+    import torch
+
+    counts: collections.Counter = collections.Counter()
+    originals = {name: getattr(torch.Tensor, name) for name in HOST_READS}
+
+    def counted(name, method):
+        def wrapper(self, *args, **kwargs):
+            counts[name] += 1
+            return method(self, *args, **kwargs)
+        return wrapper
+
+    for name, method in originals.items():
+        setattr(torch.Tensor, name, counted(name, method))
+    try:
+        yield counts
+    finally:
+        for name, method in originals.items():
+            setattr(torch.Tensor, name, method)
 
 
 def spread(values) -> str:
@@ -138,8 +175,11 @@ def main() -> int:
            "size": args.size, "threads": args.threads, "warm": args.warm, "steps": args.steps,
            "peak_gflops_measured": peak, "runs": runs, "date": time.strftime("%Y-%m-%d %H:%M")}
     print(f"{args.label} ({commit}), {args.scene}, {args.rays} rays/step at {args.size} px, {args.threads} threads")
-    for key in ("wall_ms", "cpu_ms", "rays_per_cpu_s", "rays_per_wall_s", "evaluated_per_ray", "samples_per_cpu_s"):
+    for key in ("wall_ms", "cpu_ms", "rays_per_cpu_s", "rays_per_wall_s", "evaluated_per_ray", "samples_per_cpu_s",
+                "samples_per_step", "launches_per_step"):
         print(f"  {key:<20} {spread([r[key] for r in runs])}")
+    print("  host reads per step (each a host-device synchronisation on a GPU), seed 0: "
+          + (", ".join(f"{k} {v:g}" for k, v in runs[0]["host_reads_per_step"].items()) or "none"))
     print("  where a step's time goes (ms, CPU total of each labelled part, seed 0):")
     for k, v in runs[0]["parts_ms"].items():
         print(f"    {k:<22} {v:7.1f}")

@@ -196,3 +196,21 @@ def test_match_precision_measures_a_known_offset_and_the_refinements_undo_it(tmp
     moved = match_precision.match_errors(scene, neighbours=2, offset=(1.0, 0.0))
     assert 0.8 < np.median(moved["SIFT (as matched)"]) < 1.3
     assert np.median(moved["+ affine ECC 17 px"]) < 0.6 * np.median(moved["SIFT (as matched)"])
+
+
+def test_the_step_profile_counts_launches_host_reads_and_samples():
+    """bench.profile_step on the synthetic scene, a few tiny steps: operators launched, host reads (the
+    trainer reads its loss back every step) and samples per step, as its JSON records them."""
+    import argparse
+
+    from bench import profile_step
+
+    args = argparse.Namespace(scene="synthetic", rays=64, size=32, warm=2, steps=2, profile_steps=2, iters=50,
+                              threads=1, set=[])
+    run = profile_step.one_seed(args, 0)
+    assert run["launches_per_step"] > 50  # a NeuS step is hundreds of small operators
+    assert run["host_reads_per_step"].get("__float__", 0) >= 1  # the loss read back per step
+    assert run["samples_per_step"] == run["evaluated_per_ray"] * 64 > 64
+    import torch
+
+    assert torch.Tensor.item.__name__ == "item"  # the counters are gone again
