@@ -184,7 +184,7 @@ class Round:
             # the tracks (not the poses) of COLMAP's reconstruction of this round's views' matches
             with io.native_output_to(cfg.log_path) if cfg.log_path else contextlib.nullcontext():  # COLMAP's own log goes to log.txt
                 ba = init_from_matches(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
-                                       sizes=inputs.sizes)
+                                       sizes=inputs.sizes, seed=cfg.run.seed)
             self.corr = correspondence.ReprojectionLoss(
                 correspondence.TrackSet(self.ids, inputs.views.K, ba.obs_view, ba.obs_point, ba.obs_uv), self.corr_p,
                 correspondence_weight, device)

@@ -72,7 +72,7 @@ SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "correspon
 OUTPUTS = ("final",)
 
 
-def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: float) -> dict:
+def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: float, seed: int = 0) -> dict:
     """Poses of placed + new views from an incremental SfM over them (verified matches only),
     brought into the model's frame by the Sim3 that maps its placed views onto their optimised
     poses; views the SfM did not register are left out."""
@@ -80,7 +80,7 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
 
     ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
     res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, reproj_px=reproj_px,
-                                      sizes=inputs.sizes)
+                                      sizes=inputs.sizes, seed=seed)
     row = {v: k for k, v in enumerate(ids)}
     ok = [v for v in placed_ids if res.placed[row[v]]]
     if len(ok) < 3:
@@ -93,6 +93,7 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
 def run(ctx) -> None:
     p: Params = ctx.params
     cfg = posefree.RoundConfig.from_sections(ctx.section, ctx.log_path)
+    seed = cfg.run.seed  # COLMAP's random choices: the SfM a round restarts from is sfm-all's of the same seed
     inputs = posefree.load_inputs(**{s: ctx.input(s) for s in posefree.INPUT_STAGES})
     rounds = inputs.schedule["round"]
     n_rounds = int(rounds.max()) if (rounds >= 0).any() else 0
@@ -117,7 +118,7 @@ def run(ctx) -> None:
         restart = p.sfm_restart == "every" or (p.sfm_restart == "last" and r == n_rounds)
         if restart and len(before):  # first, so that depth PnP places the new views against the restarted poses
             with io.native_output_to(ctx.log_path):
-                from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px)
+                from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px, seed)
             moved = [int(v) for v in before if v in from_matches]
             for v in moved:
                 w2c[v] = from_matches[v]
@@ -139,7 +140,7 @@ def run(ctx) -> None:
             if p.placement == "matches" or info["method"] != "pnp":
                 if from_matches is None:
                     with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
-                        from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px)
+                        from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px, seed)
                 if from_matches.get(v) is not None:
                     pose, info = from_matches[v], {"method": "matches", "after": info["method"] if p.placement == "depth" else None}
             init[inputs.names[v]] = info
