@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pipeline
-from manifoldneus.artifacts import REFERENCE_POSE_METRICS, ROUND_META, load_evaluation
+from manifoldneus.artifacts import ANCHOR_ROUND, REFERENCE_POSE_METRICS, ROUND_META, load_evaluation, successor_rounds
 from manifoldneus import io
 from runner import executor
 
@@ -124,8 +124,8 @@ def rounds_total_iters(store: pipeline.Store, versions: dict[str, str] | None = 
     def version(stage):
         return store.version_dir(stage, (versions or {}).get(stage) or store.current(stage))
 
-    steps = io.load_json(version("anchors") / "round_0" / ROUND_META)["train"]["steps"]
-    for d in version("successors").glob("round_*"):
+    steps = io.load_json(version("anchors") / ANCHOR_ROUND / ROUND_META)["train"]["steps"]
+    for d in successor_rounds(version("successors")):
         steps += io.load_json(d / ROUND_META)["train"]["steps"]
     return int(steps)
 

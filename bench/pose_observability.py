@@ -100,7 +100,7 @@ def field_losses(trainer, w2c: np.ndarray, view: torch.Tensor, pix: torch.Tensor
 
 def field_report(store: pipeline.Store, version: str, control_deg: float, rays_per_view: int, seed: int = 0) -> dict:
     """field_losses under the final poses and the two controls made from them."""
-    final_dir = store.version_dir("successors", version) / "final"
+    final_dir = store.version_dir("successors", version) / art.FINAL_ROUND
     final = art.load_round(final_dir)
     views = art.load_views(store.version_dir("ingest", store.current("ingest")), final["w2c"], final["K"],
                            final.get("distortion"))
@@ -127,7 +127,7 @@ def scene_report(scene: str, artifacts: Path, control_deg: float, rays_per_view:
     if final_version:
         version_dir = ours_store.version_dir("successors", final_version)
         final_seed = json.loads((version_dir / "manifest.json").read_text())["params"]["run"]["seed"]
-        poses["ManifoldNeuS final"] = art.load_pose_estimate(version_dir / "final")["w2c"][ids]
+        poses["ManifoldNeuS final"] = art.load_pose_estimate(version_dir / art.FINAL_ROUND)["w2c"][ids]
         field = field_report(ours_store, final_version, control_deg, rays_per_view, seed)
     poses["sfm-all turned"] = turned(sfm, control_deg, rng)
     poses["sfm-all swung"] = turned(sfm, control_deg, rng, about=np.median(res.points, 0))

@@ -49,14 +49,14 @@ from scipy.stats import rankdata
 
 import pipeline
 from manifoldneus import io
-from manifoldneus.artifacts import load_evaluation, load_gt_meta, load_schedule_meta, load_views_meta
+from manifoldneus.artifacts import load_evaluation, load_gt_meta, load_schedule_meta, load_views_meta, round_folder
 from runner import executor
 from manifoldneus.config import ParamError
 from manifoldneus.scenes import SceneError
 
 ROOT = Path(__file__).resolve().parent.parent
 
-ANCHOR_ROUND, FIRST_SUCCESSOR_ROUND = "anchors", "round_1"  # round labels of evaluation.json
+ANCHOR_ROUND, FIRST_SUCCESSOR_ROUND = "anchors", round_folder(1)  # round labels of evaluation.json
 
 
 @dataclasses.dataclass(frozen=True)

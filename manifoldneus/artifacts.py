@@ -31,9 +31,12 @@ SPECTRAL = "spectral.zarr"  # spectral's embedding phi and component labels
 COMPONENTS = "components.json"  # covisibility's connected components
 REFERENCE_POSE_METRICS = "reference_pose_metrics.json"  # evaluate_poses' scores of the pycolmap reference
 # plots the report shows
+ANCHOR_ROUND = "round_0"  # the anchors' round: anchors/<version>/round_0/ (and its checkpoint round_0.pt)
+FINAL_ROUND = "final"  # successors/<version>/final: a link to its last round (a copy of round_0 when it has none)
 SCHEDULE_PLOT = "schedule.png"
 CAMERAS_PLOT = "cameras.png"
 POSE_ERROR_PLOT = "pose_error_rounds.png"
+REFERENCE_CAMERAS_PLOT = "reference_cameras.png"  # evaluate_poses' plot of pycolmap's cameras against the truth
 
 
 def load_views_meta(ingest_dir: Path) -> dict:
@@ -189,3 +192,13 @@ def load_pose_estimate(est_dir: Path) -> dict:
     ``registered`` where it has one (only the reference leaves views unregistered)."""
     path = Path(est_dir) / POSES
     return io.load_arrays(path, [n for n in ("w2c", "registered") if n in io.array_names(path)])
+
+
+def round_folder(r: int) -> str:
+    """Round r's folder (and checkpoint stem): round_0 the anchors', round_1, round_2, ... the successors'."""
+    return f"round_{r}"
+
+
+def successor_rounds(successors_dir: Path) -> list[Path]:
+    """The round folders of a successors version, in round order (``final`` is a link to the last)."""
+    return sorted(Path(successors_dir).glob("round_*"), key=lambda d: int(d.name.split("_")[1]))

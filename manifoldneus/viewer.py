@@ -91,10 +91,10 @@ def _rounds(anchors_dir: Path, successors_dir: Path) -> list[tuple[str, np.ndarr
     each successor round, in order (as the ``evaluate`` stage lists them)."""
     init = artifacts.load_initial_poses(anchors_dir)
     out = [("initial", init["w2c"], init["placed"].astype(bool))]
-    dirs = [anchors_dir / "round_0"] + sorted(successors_dir.glob("round_*"), key=lambda p: int(p.name.split("_")[1]))
+    dirs = [anchors_dir / artifacts.ANCHOR_ROUND] + artifacts.successor_rounds(successors_dir)
     for d in dirs:
         r = artifacts.load_round(d)
-        label = "anchors" if d.name == "round_0" else d.name.replace("_", " ")
+        label = "anchors" if d.name == artifacts.ANCHOR_ROUND else d.name.replace("_", " ")
         out.append((label, r["w2c"], r["placed"].astype(bool) & r["optimised"].astype(bool)))
     return out
 
@@ -108,11 +108,11 @@ def _errors(w2c: np.ndarray, gt: np.ndarray, present: np.ndarray) -> list:
 
 def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
     """What the page draws, from the version folders of one run (stage -> folder; ``ingest``,
-    ``ground_truth``, ``schedule``, ``reference``, ``anchors``, ``successors`` and ``export``)."""
+    ``ground_truth``, ``schedule``, ``anchors``, ``successors``, ``export`` and, when it was run, ``reference``)."""
 
     views_meta = artifacts.load_views_meta(versions["ingest"])
     names, width, height = views_meta["names"], views_meta["width"], views_meta["height"]
-    K = artifacts.load_round_arrays(versions["successors"] / "final", ["K"])["K"]  # the intrinsics the poses belong to
+    K = artifacts.load_round_arrays(versions["successors"] / artifacts.FINAL_ROUND, ["K"])["K"]  # the intrinsics the poses belong to
     n = len(names)
     schedule = artifacts.load_schedule_meta(versions["schedule"])
     held_out = np.zeros(n, bool)
@@ -159,7 +159,8 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
                    "held_out_drawn": int(held_out.sum()) if gt is not None else 0},
         "rounds": rounds_json,
         "gt": None if gt is None else {"frusta": gt["frusta"]},
-        "reference": reference_data(versions["reference"], final_w2c, final_posed, K, width, height, depth),
+        "reference": None if "reference" not in versions else reference_data(versions["reference"], final_w2c,
+                                                                              final_posed, K, width, height, depth),
         "mesh": {"positions": _b64(v, "f4"), "indices": _b64(f, "u4"),
                  "colours": None if c is None else _b64(c, "u1"),
                  "n_vertices": int(len(v)), "n_faces": int(len(f)), "n_faces_full": int(len(faces))},

@@ -88,7 +88,7 @@ def posed_lines(successors_dir: Path, schedule_dir: Path) -> list[str]:
     from manifoldneus import artifacts
 
     schedule = load_schedule_meta(schedule_dir)
-    placed = artifacts.load_round_arrays(successors_dir / "final", ["placed"])["placed"].astype(bool)
+    placed = artifacts.load_round_arrays(successors_dir / artifacts.FINAL_ROUND, ["placed"])["placed"].astype(bool)
     held = set(schedule["held_out_views"])
     meant = [v for v in schedule["views"] if v["view"] not in held]  # those outside the largest component too
     missing = [v["name"] for v in meant if not placed[v["view"]]]
@@ -248,7 +248,7 @@ def view(scene_name: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=No
 
     scene = resolve_scene(scene_name, data_root)
     store = Store(artifacts, scene.name, preset)
-    versions = store.lineage("export")
+    versions = store.lineage("export", beside=("reference",))
     if not versions:
         for_preset = f" --preset {preset}" if preset else ""
         raise PipelineError(f"scene {scene.name}{for_preset} has no exported result to view in {Path(artifacts)}; "

@@ -83,13 +83,13 @@ def neural_rounds(ptr: Pointers) -> list[RoundPoses]:
     if anchors is None:
         return []
     init = artifacts.load_initial_poses(anchors)
-    dirs = [anchors / "round_0"]
+    dirs = [anchors / artifacts.ANCHOR_ROUND]
     if successors is not None:
-        dirs += sorted(successors.glob("round_*"), key=lambda p: int(p.name.split("_")[1]))
+        dirs += artifacts.successor_rounds(successors)
     out = [RoundPoses("initial", init["w2c"], init["placed"].astype(bool))]
     for d in dirs:
         r = artifacts.load_round(d)
-        label = "anchors" if d.name == "round_0" else d.name
+        label = "anchors" if d.name == artifacts.ANCHOR_ROUND else d.name
         out.append(RoundPoses(label, r["w2c"], r["placed"].astype(bool) & r["optimised"].astype(bool), r))
     return out
 
@@ -399,7 +399,7 @@ def section_viewer(page: Page, systems: dict[str, Pointers], scene: str) -> None
 
     page.add("## Viewer", "")
     for name, ptr in systems.items():
-        versions = ptr.store.lineage("export")
+        versions = ptr.store.lineage("export", beside=("reference",))
         if not versions:
             page.missing(f"{name} viewer", f"stage export: {_run_hint(scene, ptr.preset)}")
             continue
@@ -427,7 +427,7 @@ def section_cameras(page: Page, systems: dict[str, Pointers], reference: tuple[P
     page.add("## Aligned cameras (supplement Fig. A2)", "",
              "Estimated cameras (red) Sim3-aligned to the ground truth (grey), final poses.", "")
     drawn = {name: ptr.file("evaluate", CAMERAS_PLOT) for name, ptr in systems.items()}
-    ref_png = None if reference[1] is None else reference[1] / "reference_cameras.png"
+    ref_png = None if reference[1] is None else reference[1] / artifacts.REFERENCE_CAMERAS_PLOT
     drawn[REFERENCE] = ref_png if ref_png is not None and ref_png.is_file() else None
     for name, png in drawn.items():
         page.add(f"### {name}", "")
@@ -467,8 +467,8 @@ def section_pose_errors(page: Page, rows: dict[str, list[dict]], gt: GroundTruth
             page.add(f"| {name} | {r['label']} | {r['n_views']} | " + " | ".join(_fmt(v) for v in vals) + " |")
     page.add("")
     if any(r["summary"] for system_rows in rows.values() for r in system_rows):
-        plot_pose_errors(rows, u, page.out / "pose_error_rounds.png")
-        page.image("pose_error_rounds.png", "pose error per round")
+        plot_pose_errors(rows, u, page.out / artifacts.POSE_ERROR_PLOT)
+        page.image(artifacts.POSE_ERROR_PLOT, "pose error per round")
 
 
 def section_losses(page: Page, rounds: dict[str, list[RoundPoses]]) -> None:

@@ -97,10 +97,12 @@ class Store:
             return None
         return json.loads((self.version_dir(stage, fingerprint) / MANIFEST).read_text())
 
-    def lineage(self, stage: str) -> dict[str, Path]:
+    def lineage(self, stage: str, beside: tuple[str, ...] = ()) -> dict[str, Path]:
         """The current version of ``stage`` and the versions of all its upstream stages that it was
         computed from (as its manifests name them): one consistent set, whatever the other stages'
-        pointers say now. Stage -> version folder; {} when ``stage`` has no current version."""
+        pointers say now; and the current version of each stage of ``beside`` that is not among them
+        (e.g. pycolmap's reference, which a run reads only for what is beside its result). Stage ->
+        version folder; {} when ``stage`` has no current version."""
         fp = self.current(stage)
         todo, out = ([(stage, fp)] if fp else []), {}
         while todo:
@@ -109,6 +111,9 @@ class Store:
                 continue
             out[name] = self.version_dir(name, fp)
             todo.extend(self.manifest(name, fp).get("upstream", {}).items())
+        for name in beside:
+            if out and name not in out and self.current(name):
+                out[name] = self.version_dir(name, self.current(name))
         return out
 
     # A run's record: the versions it has started or finished, written as it goes. A run that does

@@ -121,7 +121,7 @@ class Params:
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "reference")
 UPSTREAM_IF = {"reference": ("pose_init", "reference")}  # pycolmap's SfM only where the anchors start from it
 SECTIONS = ("anchors", "train", "field", "render", "loss", "gate", "correspondence", "run")
-OUTPUTS = ("round_0", artifacts.INITIAL_POSES)
+OUTPUTS = (artifacts.ANCHOR_ROUND, artifacts.INITIAL_POSES)
 
 
 @dataclass
@@ -387,8 +387,8 @@ def run(ctx) -> None:
                          pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
                          pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
                          sfm_points=sfm_points)
-    summary = rnd.run("anchors", ctx.checkpoint_dir / "round_0.pt", log=ctx.log, progress=ctx.progress)
-    posefree.save_round(ctx.out / "round_0", rnd, placed, {
+    summary = rnd.run("anchors", ctx.checkpoint_dir / f"{artifacts.ANCHOR_ROUND}.pt", log=ctx.log, progress=ctx.progress)
+    posefree.save_round(ctx.out / artifacts.ANCHOR_ROUND, rnd, placed, {
         "round": 0, "views": anchors, "names": [inputs.names[a] for a in anchors], "init": init_info,
         "train": summary, "history": rnd.trainer.history})
     ctx.metrics.update(n_anchors=len(anchors), init=init_info["method"], seconds=summary["seconds"],

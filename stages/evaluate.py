@@ -44,9 +44,9 @@ def input_signature(scene, p) -> str:
 def _rounds(ctx) -> list[tuple[str, dict]]:
     """(label, poses) per row: the anchors' initial poses, then each round."""
     out = [("initial", artifacts.load_initial_poses(ctx.input("anchors")))]
-    out.append(("anchors", artifacts.load_round(ctx.input("anchors") / "round_0")))
+    out.append(("anchors", artifacts.load_round(ctx.input("anchors") / artifacts.ANCHOR_ROUND)))
     succ = ctx.input("successors")
-    for d in sorted(succ.glob("round_*"), key=lambda p: int(p.name.split("_")[1])):
+    for d in artifacts.successor_rounds(succ):
         out.append((d.name, artifacts.load_round(d)))
     return out
 
@@ -196,7 +196,7 @@ def run(ctx) -> None:
                               "chamfer_pct_of_bbox_diagonal": 100 * ch["chamfer"] / diag}
     # --- novel views of held-out views
     held = np.flatnonzero(holdout_mask(len(names), ctx.section("split")))
-    final_dir = ctx.input("successors") / "final"
+    final_dir = ctx.input("successors") / artifacts.FINAL_ROUND
     final = artifacts.load_round(final_dir)
     if len(held):
         views = artifacts.load_views(ctx.input("ingest"), final["w2c"], final["K"], final.get("distortion"))

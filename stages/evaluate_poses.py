@@ -53,7 +53,8 @@ def evaluate_pose_artifact(est_dir, gt_dir, out_dir, label: str, names=None, wit
     ``<label>_pose_metrics.json``, ``<label>_cameras.png`` and ``<label>_aligned_poses.zarr`` into
     ``out_dir``. Returns the JSON-safe summary dict (also written)."""
     est_dir, gt_dir, out_dir = Path(est_dir), Path(gt_dir), Path(out_dir)
-    json_path = out_dir / f"{label}_pose_metrics.json"
+    json_path = out_dir / f"{label}_pose_metrics.json"  # with label "reference": artifacts.REFERENCE_POSE_METRICS
+    plot_name = f"{label}_cameras.png"  # artifacts.REFERENCE_CAMERAS_PLOT
     gt_meta = artifacts.load_gt_meta(gt_dir)
     if not gt_meta.get("has_poses", (gt_dir / artifacts.POSES).exists()):
         out = {"label": label, "evaluated": False, "reason": "the scene has no ground-truth poses"}
@@ -84,7 +85,7 @@ def evaluate_pose_artifact(est_dir, gt_dir, out_dir, label: str, names=None, wit
                    attrs={"frame": "ground-truth object-normalised", "alignment": out["alignment"]},
                    chunk_first=False)
     s = out["summary"]
-    plot_cameras(res["w2c_aligned"], w2c_gt, out_dir / f"{label}_cameras.png", valid=res["valid"],
+    plot_cameras(res["w2c_aligned"], w2c_gt, out_dir / plot_name, valid=res["valid"],
                  title=f"{label} vs GT (Sim3-aligned): rot {s['rot_err_deg']['mean']:.3f} deg mean, "
                        f"centre {s['center_err_units']['mean']:.3f} {units} mean "
                        f"({s['center_err_pct']['mean']:.2f} %), {res['n_valid']}/{res['n_views']} views")

@@ -77,7 +77,7 @@ def rigid(w2c: np.ndarray) -> np.ndarray:
 
 def run(ctx) -> None:
     p: Params = ctx.params
-    final_dir = ctx.input("successors") / "final"
+    final_dir = ctx.input("successors") / artifacts.FINAL_ROUND
     final = artifacts.load_round(final_dir)
     w2c, placed = final["w2c"], final["placed"].astype(bool)
     valid = placed & final["optimised"].astype(bool)

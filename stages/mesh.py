@@ -25,7 +25,7 @@ OUTPUTS = (artifacts.MESH, artifacts.POSES, "colmap")
 
 
 def run(ctx) -> None:
-    final = ctx.input("successors") / "final"
+    final = ctx.input("successors") / artifacts.FINAL_ROUND
     result = artifacts.load_round(final)
     w2c, placed = result["w2c"], result["placed"].astype(bool)
     views = artifacts.load_views(ctx.input("ingest"), w2c, result["K"], result.get("distortion"))
@@ -33,7 +33,7 @@ def run(ctx) -> None:
     trainer = evaluation.trainer_from_checkpoint(final / artifacts.MODEL, posefree.subset_views(views, ids, w2c),
                                                  ctx.section("run").device)
     masks = None if views.masks is None else views.masks[ids]
-    found = io.load_json(ctx.input("anchors") / "round_0" / artifacts.ROUND_META)["init"].get("object_region")
+    found = io.load_json(ctx.input("anchors") / artifacts.ANCHOR_ROUND / artifacts.ROUND_META)["init"].get("object_region")
     region = None if found is None else object_region.ObjectRegion.from_json(found)
     object_points = object_points_of(result, views, ids, ctx.section("anchors").object_min_seen)
     if object_points is None:

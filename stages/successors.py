@@ -69,7 +69,7 @@ class Params:
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "anchors")
 SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "correspondence", "run")
-OUTPUTS = ("final",)
+OUTPUTS = (artifacts.FINAL_ROUND,)
 
 
 def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: float, seed: int = 0) -> dict:
@@ -100,7 +100,7 @@ def run(ctx) -> None:
     if p.max_rounds and n_rounds > p.max_rounds:
         ctx.log.info("successors.max_rounds = %d: rounds %d..%d are not run", p.max_rounds, p.max_rounds + 1, n_rounds)
         n_rounds = p.max_rounds
-    prev_dir = ctx.input("anchors") / "round_0"
+    prev_dir = ctx.input("anchors") / artifacts.ANCHOR_ROUND
     prev = artifacts.load_round(prev_dir)
     inputs = posefree.with_intrinsics(inputs, prev["K"], prev.get("distortion"))  # the anchors' (refined, if they were)
     carry = {k: v for k, v in torch.load(prev_dir / artifacts.MODEL, map_location="cpu", weights_only=False).items()
@@ -171,8 +171,8 @@ def run(ctx) -> None:
                              polish=posefree.Polish(p.polish_steps, p.polish_rays, p.polish_lr, p.polish_translation)
                              if last or p.polish_rounds == "every" else None,
                              learn_translation=p.final_translation or not last)
-        summary = rnd.run(f"round {r}", ctx.checkpoint_dir / f"round_{r}.pt", log=ctx.log, progress=ctx.progress)
-        posefree.save_round(ctx.out / f"round_{r}", rnd, placed.copy(), {
+        summary = rnd.run(f"round {r}", ctx.checkpoint_dir / f"{artifacts.round_folder(r)}.pt", log=ctx.log, progress=ctx.progress)
+        posefree.save_round(ctx.out / artifacts.round_folder(r), rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,
             "history": rnd.trainer.history})
         w2c = rnd.poses_all()
@@ -184,7 +184,7 @@ def run(ctx) -> None:
                                       "unplaced": methods.count("unplaced"), "seconds": summary["seconds"],
                                       "final_loss": summary["final_loss"], "rollbacks": summary["rollbacks"]})
     if n_rounds:
-        os.symlink(f"round_{n_rounds}", ctx.out / "final")  # relative: survives the version's rename
+        os.symlink(artifacts.round_folder(n_rounds), ctx.out / artifacts.FINAL_ROUND)  # relative: survives the version's rename
     else:  # no successor rounds (e.g. the uniform schedule): the anchors' result is final
-        shutil.copytree(prev_dir, ctx.out / "final")
+        shutil.copytree(prev_dir, ctx.out / artifacts.FINAL_ROUND)
     ctx.metrics["n_rounds"] = n_rounds
