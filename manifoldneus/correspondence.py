@@ -1,14 +1,15 @@
-"""Correspondence term and guard of the joint field-and-pose rounds.
+"""Correspondence term of the joint field-and-pose rounds, and the per-view acceptance of their pose updates.
 
 The photometric loss of a CPU-sized field is a noisy pose signal: Adam normalises the noise, so
 the corrections random-walk by about ``pose_lr * sqrt(steps)`` and leave well-initialised poses
 worse than they started. The verified matches of the front-end are an unbiased anchor that does
-not depend on the field: every round adds, for the views it optimises, the robust Sampson error
-of their verified matches under the current poses (PoRF and SPARF use the same kind of term),
-so the poses keep a correspondence-consistent optimum while the field is soft, and the views a
-round places from PnP are adjusted together with all the others (a multi-view refinement, not a
-per-view one). The Sampson error needs no 3D points and is invariant to the similarity gauge the
-field fixes.
+not depend on the field: every round adds, for the views it optimises, a robust error of their
+matches under the current poses (PoRF and SPARF use the same kind of term), so the poses keep a
+correspondence-consistent optimum while the field is soft, and the views a round places are
+adjusted together with all the others (a multi-view refinement, not a per-view one). The default
+``reprojection`` kind takes the reprojection error of the bundle-adjusted tracks, their points
+re-triangulated from the current poses; the ``sampson`` kind the epipolar error of the matches,
+which needs no 3D points and is blind to each pair's baseline length.
 
 A fraction of the tracks (or matches; ``holdout_frac``, drawn with a fixed seed) never enters the
 loss: they decide, view by view, whether the round's pose update is kept (:func:`accept_per_view`).
