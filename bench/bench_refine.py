@@ -32,7 +32,7 @@ from pathlib import Path
 
 
 import pipeline
-from manifoldneus.artifacts import ROUND_META, load_evaluation, load_reference_surface_meta
+from manifoldneus.artifacts import load_evaluation, load_reference_surface_meta
 from bench import bench
 from bench.bench import git_commit, spread
 from manifoldneus import io
