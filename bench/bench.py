@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark: ManifoldNeuS, its NeuS baselines and the pycolmap reference on one scene, in one sitting.
+"""Benchmark: ManifoldNeuS, its NeuS baselines and the pycolmap reference on one scene, in one bench run.
 
     python -m bench.bench --scene scan24 [--scene S ...] [--seeds 0,1,2]
                           [--systems manifoldneus,neus-barf,neus-colmap,sfm-all,photos-alone,pycolmap]
@@ -22,7 +22,7 @@ Prints a per-system table (ratios against pycolmap in columns of their own, sinc
 on a shared machine drift), a stage x system wall-time table and the per-stage table; writes
 ``<out-dir>/<scene>/<YYYY-MM-DD>.json`` (``bench/results_md.py`` turns the latest into README's
 Results; a subset of the systems or an `--until` run gets a suffix instead). `--force-all`
-recomputes every version once, so that all times are of this sitting. Speed targets are checked
+recomputes every version once, so that all times are of this run. Speed targets are checked
 here, never in tests.
 
 Other scripts and tests use it as ``from bench import bench``; its helpers (``collect``,
@@ -80,7 +80,7 @@ RATIOS = (("rotation", "rot_err_deg_mean"), ("centre", "center_err_units_mean"),
 
 @dataclass
 class Run:
-    """One pipeline run of a preset in this sitting."""
+    """One pipeline run of a preset in this bench."""
 
     preset: str | None
     params: dict             # section -> resolved parameters of the run
@@ -168,13 +168,13 @@ def run_systems(scenes: list[str], systems: list[System], overrides: list[str], 
                      lambda scene: [f"anchors.iters={iters[scene]}"] if scene in iters else [])
     done += executor.run_all(later, executor_name, workers)
     outcomes = {o.name: o for o in done}
-    computed = set().union(*(o.computed for o in done))  # (stage, fingerprint) of this sitting
+    computed = set().union(*(o.computed for o in done))  # (stage, fingerprint) computed by this bench
     runs: dict[str, list[Run]] = {}
     for spec in specs + later:
         preset, outcome = spec.args["preset"], outcomes[spec.name]
         params = pipeline.resolve_params(stages, overrides=spec.args["overrides"], preset=preset)
         rows = {} if outcome.error else collect(spec.scene, artifacts, preset, outcome.report, outcome.report.fingerprints)
-        for stage, row in rows.items():  # a later preset reuses what an earlier one computed: still of this sitting
+        for stage, row in rows.items():  # a later preset reuses what an earlier one computed: still of this bench
             row["computed_in_this_bench"] = (stage, row["fingerprint"]) in computed
         runs.setdefault(spec.scene, []).append(Run(preset, params, dict(outcome.report or {}), rows, outcome.error))
     return runs
@@ -269,7 +269,7 @@ def add_ratios(systems: dict[str, dict]) -> None:
 
 
 def stage_rows(runs: list[Run]) -> dict[str, dict]:
-    """Every version used in this sitting, once: `stage` for the first run's, `stage @preset` for a
+    """Every version used in this bench, once: `stage` for the first run's, `stage @preset` for a
     version of a later preset that differs (e.g. its schedule)."""
     rows, seen = {}, set()
     for run in runs:
@@ -390,8 +390,8 @@ def run_benches(scenes: list[str], systems: list[System], overrides=(), until=No
                 artifacts=pipeline.DEFAULT_ARTIFACTS, executor_name: str = "in-process", workers: int | None = None,
                 seeds: list[int] | None = None) -> dict[str, dict]:
     """Run the systems on every scene, once per seed (``run.seed``; None: the parameters' own); scene
-    -> its JSON-ready result. With several scenes or seeds the sitting's total wall time and machine
-    load are the whole sitting's. `force` applies to the first seed's runs only (the later ones
+    -> its JSON-ready result. With several scenes or seeds the run's total wall time and machine
+    load are the whole run's. `force` applies to the first seed's runs only (the later ones
     reuse what it recomputed, e.g. the front-end)."""
     started, host = time.time(), machine()
     per_seed: dict[str, dict[str, dict]] = {}   # scene -> seed -> system -> result
@@ -520,16 +520,16 @@ def notes(result: dict) -> list[str]:
     systems = result["systems"]
     charged = [st for s in systems.values() for st in s["stages"].values()]
     fresh = sum(st["computed_in_this_bench"] for st in charged)
-    sitting = ("All of them are of this sitting." if fresh == len(charged) else
-               f"{fresh} of the {len(charged)} are of this sitting, the others of the run that first computed the "
-               "cached version (`--force-all` for a fresh sitting).")
+    fresh_note = ("All of them are of this bench." if fresh == len(charged) else
+               f"{fresh} of the {len(charged)} are of this bench, the others of the run that first computed the "
+               "cached version (`--force-all` for a fresh bench).")
     seeds = result.get("seeds") or []
     out = [f"Mean ± std over the seeds {', '.join(map(str, seeds))} (`run.seed`; std with ddof 1); the ratios are "
            "of the means. Per seed: `per_seed` in the JSON."] if len(seeds) > 1 else []
     out += [
         "Times: sum of the wall times recorded in the manifests of the stages charged to each system (per stage: "
         "the bench's stage table and the JSON). Versions shared between systems (ingest, the front-end, the pycolmap reference) are computed "
-        f"once and counted for every system that uses them; evaluation stages are never counted. {sitting}",
+        f"once and counted for every system that uses them; evaluation stages are never counted. {fresh_note}",
         "Pose errors after a Sim3 alignment to the ground truth, fitted on the camera centres; the NeuS systems "
         "over the views they optimise (held-out views excluded), pycolmap over the views it registers. PRE_r / "
         "PRE_t: mean relative pose errors over view pairs, which no alignment changes (a shift of the centres "
@@ -557,7 +557,7 @@ def notes(result: dict) -> list[str]:
     missing = {st for s in systems.values() for st in s["missing_stages"]}
     if missing:
         names = ", ".join(sorted(missing, key=list(pipeline.load_stages()).index))
-        out.append(f"Not run in this sitting (`--until {result['until']}`): {names}; totals leave them out.")
+        out.append(f"Not run in this bench (`--until {result['until']}`): {names}; totals leave them out.")
     return out
 
 
@@ -569,7 +569,7 @@ def comparison_markdown(result: dict, with_stages: bool = True) -> str:
 
 
 def stages_table(rows: dict) -> str:
-    """Every version used in the sitting: wall, CPU, peak memory and the first metrics."""
+    """Every version used in the bench: wall, CPU, peak memory and the first metrics."""
     body = []
     for name, r in rows.items():
         metrics = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"

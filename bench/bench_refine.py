@@ -11,7 +11,7 @@ refine, on the final views), after each round (with that round's start), and the
 views kept the last round's pose update (the held-out tracks' per-view test, the others keep the
 round's start); pycolmap's errors and `sfm-all`'s (our matches,
 COLMAP's mapper and bundle adjustment on every training view at once: the preset of that name) in
-the same sitting; held-out
+the same run; held-out
 masked PSNR of the final model and of the GT-pose NeuS (`reference_surface`) trained for the same
 number of iterations as all rounds together (for the seeds in --reference-seeds, default the
 first; the GT-pose NeuS has a seed of its own, `reference_surface.seed`, so it is trained once and

@@ -8,7 +8,7 @@ steps (wall and process CPU seconds), then profiles ``--profile-steps`` more wit
 groups them by the trainer's labelled parts, counts the operator launches (leaf aten calls) and the
 host reads (``.item()``, ``float(t)``, ``.cpu()``, ...: each a synchronisation on a GPU) a step makes, and
 the samples it evaluates. ``--code DIR`` runs another checkout's manifoldneus
-(the same script measures old and new code in one sitting). Several seeds: mean and spread.
+(the same script measures old and new code in one run). Several seeds: mean and spread.
 
     .venv/bin/python -m bench.profile_step --scene scan24 --seeds 0,1,2
     .venv/bin/python -m bench.profile_step --code /tmp/old --label old     # a checkout of older code

@@ -26,7 +26,7 @@ no view (``split.holdout_every=0``): the supplement's 25 / 17 / 10 views are all
 Prints a markdown table in the supplement's layout: one row per setting; rotation error (deg)
 and camera-centre error of the anchor round ("Anc. Opt.") and of the first successor round
 ("Succ. Opt."), the supplement's value in brackets where its text prints one, the views per
-round, the wall seconds of the setting in this sitting and from an empty cache, and which
+round, the wall seconds of the setting in this run and from an empty cache, and which
 stages were computed (the rest were reused). Writes ``<out>/<scene>/sweep_<TABLE>_<date>.json``
 after every setting, so a long sweep that stops keeps what it measured.
 """
@@ -401,7 +401,7 @@ def markdown(result: dict) -> str:
         + (f"[x] = {t.source}: its ΔT units are not stated and its setup differs (GPU, full resolution, "
            "identity initialisation), so compare trends, not values." if t.paper
            else f"No supplement values: {t.source}.")
-        + " wall s: this sitting; cost s: the setting's stage versions from an empty cache.",
+        + " wall s: this run; cost s: the setting's stage versions from an empty cache.",
     ]
     trend = trend_notes(ok, t.paper) if t.paper else []
     if trend:

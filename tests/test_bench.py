@@ -1,4 +1,4 @@
-"""The bench on the tiny synthetic scene: every system over two seeds in one sitting, one JSON, one
+"""The bench on the tiny synthetic scene: every system over two seeds in one run, one JSON, one
 table with the spread over seeds and ratio columns; and README's Results generated from that JSON,
 between the markers only."""
 from __future__ import annotations
@@ -50,7 +50,7 @@ def test_json_has_every_system_with_finite_pose_errors(tiny_bench):
         assert s["wall_seconds"] > 0 and s["peak_rss_mib"] > 0 and not s["missing_stages"]
         assert all(math.isfinite(v) for v in s["over_pycolmap"].values()), key
     base = systems["pycolmap"]
-    for key in NEURAL_SYSTEMS:  # each ratio is the system's figure over pycolmap's, in the same sitting
+    for key in NEURAL_SYSTEMS:  # each ratio is the system's figure over pycolmap's, in the same run
         ratios = systems[key]["over_pycolmap"]
         assert ratios["rotation"] == pytest.approx(systems[key]["rot_err_deg_mean"] / base["rot_err_deg_mean"])
         assert ratios["centre"] == pytest.approx(systems[key]["center_err_units_mean"] / base["center_err_units_mean"])
@@ -58,7 +58,7 @@ def test_json_has_every_system_with_finite_pose_errors(tiny_bench):
     for key in NEURAL_SYSTEMS:
         assert math.isfinite(systems[key]["chamfer_units"]) and systems[key]["psnr"] > 0
         assert systems[key]["psnr_aligned"] > 0  # scored again after test-time alignment
-    # the front-end is one version, computed once in this sitting and charged to every NeuS system
+    # the front-end is one version, computed once in this run and charged to every NeuS system
     features = [systems[key]["stages"]["features"] for key in NEURAL_SYSTEMS]
     assert len({f["fingerprint"] for f in features}) == 1 and all(f["computed_in_this_bench"] for f in features)
     assert "reference" in systems["neus-colmap"]["stages"] and "reference" not in systems["manifoldneus"]["stages"]

@@ -25,7 +25,7 @@ def test_own_photos_bench_scores_both_systems_against_one_ground_truth(tmp_path,
         assert r["rot_deg"] > 0 and r["chamfer"] > 0 and r["psnr_object"] > 0  # the object scored in both
     assert {t["target"].split(" ")[0] for t in result["targets"]} == {"focal", "final", "Chamfer"}
     assert "photos-alone" in capsys.readouterr().out
-    # a second sitting's JSON merged with the first: one table over both
+    # a second run's JSON merged with the first: one table over both
     second = tmp_path / "second.json"
     second.write_text(json.dumps({**result, "runs": [{**r, "seed": 1} for r in result["runs"]]}))
     assert bench_own_photos.main(["--merge", str(path), str(second), "--out-dir", out, "--label", "merged"]) == 0
