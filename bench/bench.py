@@ -521,8 +521,8 @@ def notes(result: dict) -> list[str]:
     charged = [st for s in systems.values() for st in s["stages"].values()]
     fresh = sum(st["computed_in_this_bench"] for st in charged)
     fresh_note = ("All of them are of this bench." if fresh == len(charged) else
-               f"{fresh} of the {len(charged)} are of this bench, the others of the run that first computed the "
-               "cached version (`--force-all` for a fresh bench).")
+                  f"{fresh} of the {len(charged)} are of this bench, the others of the run that first computed the "
+                  "cached version (`--force-all` for a fresh bench).")
     seeds = result.get("seeds") or []
     out = [f"Mean ± std over the seeds {', '.join(map(str, seeds))} (`run.seed`; std with ddof 1); the ratios are "
            "of the means. Per seed: `per_seed` in the JSON."] if len(seeds) > 1 else []

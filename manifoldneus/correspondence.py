@@ -330,12 +330,9 @@ def accept_per_view(loss, w2c_start: torch.Tensor, w2c_end: torch.Tensor, p: Cor
     z_limit = float(norm.isf(p.accept_alpha / max(int(tested.sum()), 1)))
     keep = (tested & (z < -z_limit)) if p.guard else np.ones(n, bool)
 
-    def kept_errors(keep):
-        with torch.no_grad():
-            return _per_view_errors(loss, torch.where(torch.as_tensor(keep, device=w2c_end.device)[:, None, None],
-                                                      w2c_end, w2c_start))
-
-    e_kept = kept_errors(keep)
+    with torch.no_grad():
+        kept_poses = torch.where(torch.as_tensor(keep, device=w2c_end.device)[:, None, None], w2c_end, w2c_start)
+        e_kept = _per_view_errors(loss, kept_poses)
     robust = {f"error_{k}": float(cauchy(e, p.robust_px).mean())
               for k, e in (("start", e_start), ("end", e_end), ("kept", e_kept))}
     together_worse = bool(p.guard and keep.any() and robust["error_kept"] > robust["error_start"])

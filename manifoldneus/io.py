@@ -207,9 +207,7 @@ def file_digests(paths) -> list[str]:
     if changed:
         try:  # a cache: a read-only home or a race with another run only costs a re-hash later
             store.parent.mkdir(parents=True, exist_ok=True)
-            tmp = store.with_name(f".{store.name}.tmp-{os.getpid()}")
-            tmp.write_text(json.dumps(_DIGESTS))
-            os.replace(tmp, store)
+            write_text_atomic(store, json.dumps(_DIGESTS))
         except OSError:
             pass
     return out

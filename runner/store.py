@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+from manifoldneus.io import write_text_atomic
 from manifoldneus.scenes import resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, MANIFEST, PipelineError
 from runner.fingerprint import content_digest, sha256_of
@@ -122,10 +123,8 @@ class Store:
     def record_run(self, versions: dict[str, str]) -> None:
         path = self.scene_dir / ".runs" / f"{_process()}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(json.dumps({"pointer": self.pointer, "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                                   "versions": versions}))
-        os.replace(tmp, path)
+        write_text_atomic(path, json.dumps({"pointer": self.pointer, "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                                            "versions": versions}))
 
     def end_run(self) -> None:
         """A run ended normally: drop its record and those that interrupted runs of the same pointer
