@@ -43,20 +43,18 @@ TIMED = ("ingest", "features", "matching", "covisibility", "spectral", "schedule
          "successors", "mesh", "reference_surface", "evaluate")
 
 
-def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_reference: bool) -> dict:
+def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_neus: bool, with_gt_pose: bool) -> dict:
     """The pipeline for one seed, and what it measured."""
     over = [*overrides, f"run.seed={seed}"]
+    iters = pipeline.resolve_params(pipeline.load_stages(), overrides=over)["surface"].iters
     t0 = time.time()
-    # first the rounds (the GT-pose NeuS off: its iteration count is known only after them)
-    pipeline.run(scene, until="successors", overrides=[*over, "reference_surface.enabled=false"], artifacts=artifacts)
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
-    iters = bench.rounds_total_iters(store)
-    over += [f"reference_surface.iters={iters}"] if with_reference else ["reference_surface.enabled=false"]
+    over += [f"reference_surface.iters={iters}"] if with_gt_pose else ["reference_surface.enabled=false"]
     pipeline.run(scene, overrides=over, artifacts=artifacts)
+    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
     rows = bench.collect(scene, artifacts, None, TIMED)
     ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
-    out = {"seed": seed, "overrides": over, "rounds_iters": iters, "wall_seconds_run": time.time() - t0,
-           "stage_seconds": {s: r["wall_seconds"] for s, r in rows.items()}}
+    out = {"seed": seed, "overrides": over, "rounds_iters": bench.rounds_total_iters(store), "surface_iters": iters,
+           "wall_seconds_run": time.time() - t0, "stage_seconds": {s: r["wall_seconds"] for s, r in rows.items()}}
     if not ev.get("poses"):
         return {**out, "error": "no ground truth: nothing to score"}
 
@@ -86,28 +84,29 @@ def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_r
     out["pycolmap"] = {"rot_deg": ref.get("rot_err_deg_mean"), "centre": ref.get("center_err_units_mean"),
                        "n_valid": ref.get("n_valid"), "n_views": ref.get("n_views")}
     out.update(surface_scores(ev))
-    if with_reference:
+    if with_gt_pose:
         refj = load_reference_surface_meta(store.version_dir("reference_surface", store.current("reference_surface")))
         if refj.get("trained"):
             s = refj["novel_views"]["summary"]
             out["gt_pose_psnr_masked"] = s.get("psnr_masked", s.get("psnr"))
             out["gt_pose_psnr_masked_aligned"] = s.get("aligned_psnr_masked", s.get("aligned_psnr"))
             out["gt_pose_iters"] = refj["train"]["steps"]
-    out["sfm_all"] = sfm_all(scene, over, iters if with_reference else 1, artifacts, errs)
+    out["sfm_all"] = sfm_all(scene, over, with_neus, artifacts, errs)
     return out
 
 
-def sfm_all(scene: str, overrides: list[str], iters: int, artifacts: Path, errs) -> dict:
-    """Pose errors of the `sfm-all` preset (its poses are its initialisation) and, when it trained
-    ``iters`` > 1 iterations, the held-out PSNR and Chamfer of NeuS on them. ``overrides`` say whether
-    the GT-pose reference surface is trained: the same version as the default preset's (the presets do
-    not change what it reads), so on DTU both Chamfer distances are to one reference."""
-    over = [*overrides, f"anchors.iters={iters}"]
+def sfm_all(scene: str, overrides: list[str], with_neus: bool, artifacts: Path, errs) -> dict:
+    """Pose errors of the `sfm-all` preset (its poses are its initialisation) and, ``with_neus``, the
+    held-out PSNR and Chamfer of NeuS on them: its surface stage, trained as the method's (the same
+    `surface` keys: equal iterations). ``overrides`` say whether the GT-pose reference surface is
+    trained: the same version as the default preset's (the presets do not change what it reads), so on
+    DTU both Chamfer distances are to one reference."""
+    over = [*overrides, *([] if with_neus else ["surface.iters=0"])]
     pipeline.run(scene, overrides=over, artifacts=artifacts, preset="sfm-all")
     store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name, "sfm-all")
     ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
-    out = {**errs(ev["poses"][-1]["summary"]), "iters": iters}
-    return {**out, **surface_scores(ev)} if iters > 1 else out
+    out = errs(ev["poses"][-1]["summary"])
+    return {**out, **surface_scores(ev)} if with_neus else out
 
 
 def surface_scores(ev: dict) -> dict:
@@ -260,15 +259,17 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default="synthetic,scan24,scan24_idr,scan65_idr")
     ap.add_argument("--seeds", default="0,1,2")
-    ap.add_argument("--reference-seeds", default=None, help="seeds that also train NeuS on sfm-all's poses at the rounds' iterations and read the GT-pose NeuS of that "
-                    "length (trained once: its seed is reference_surface.seed; default: the first seed)")
+    ap.add_argument("--reference-seeds", default=None, help="seeds that also train NeuS on sfm-all's poses (its surface "
+                    "stage, as long as the method's; default: every seed)")
+    ap.add_argument("--gt-pose", action="store_true", help="also train the GT-pose NeuS for as many iterations (once: "
+                    "its seed is reference_surface.seed)")
     ap.add_argument("--set", action="append", default=[], dest="overrides")
     ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
     ap.add_argument("--label", default="refine")
     ap.add_argument("--out-dir", type=Path, default=bench.DEFAULT_OUT_DIR)
     args = ap.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",")]
-    ref_seeds = {int(s) for s in args.reference_seeds.split(",")} if args.reference_seeds else {seeds[0]}
+    ref_seeds = {int(s) for s in args.reference_seeds.split(",")} if args.reference_seeds else set(seeds)
     result = {"label": args.label, "date": dt.datetime.now().isoformat(timespec="seconds"),
               "commit": git_commit(), "machine": bench.machine(), "overrides": args.overrides,
               "resolved_params": bench.resolved_params(args.overrides),
@@ -279,7 +280,7 @@ def main(argv=None) -> int:
         runs = []
         for seed in seeds:
             print(f"== {scene}, seed {seed}", flush=True)
-            runs.append(one_run(scene, seed, args.overrides, args.artifacts, seed in ref_seeds))
+            runs.append(one_run(scene, seed, args.overrides, args.artifacts, seed in ref_seeds, args.gt_pose))
             result["scenes"][scene] = {"runs": runs, "summary": summarise(runs), "targets": targets(scene, runs)}
             result["grid_kernel"] = bench.grid_kernel_used()
             io.save_json(path, result)  # after every run: a stopped bench keeps what it measured

@@ -21,6 +21,7 @@ STAGES = [
     "reference_surface",
     "anchors",
     "successors",
+    "surface",
     "mesh",
     "evaluate",
     "export",

@@ -31,7 +31,7 @@ class Params:
     chamfer_max_dist: float = param(0.0, "Clip distances at this many scene units (0 = no clip)", lo=0.0)
 
 
-UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "mesh", "reference_surface")
+UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "surface", "mesh", "reference_surface")
 SECTIONS = ("evaluate", "run.device", "split", "novel_views")
 OUTPUTS = (artifacts.EVALUATION, artifacts.POSE_ERROR_PLOT)
 
@@ -196,7 +196,7 @@ def run(ctx) -> None:
                               "chamfer_pct_of_bbox_diagonal": 100 * ch["chamfer"] / diag}
     # --- novel views of held-out views
     held = np.flatnonzero(holdout_mask(len(names), ctx.section("split")))
-    final_dir = ctx.input("successors") / artifacts.FINAL_ROUND
+    final_dir = ctx.input("surface")
     final = artifacts.load_round(final_dir)
     if len(held):
         views = artifacts.load_views(ctx.input("ingest"), final["w2c"], final["K"], final.get("distortion"))

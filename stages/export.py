@@ -42,7 +42,7 @@ class Params:
     vertex_colours: bool = param(True, "Colour the mesh's vertices with the final field's colour seen head-on")
 
 
-UPSTREAM = ("ingest", "ground_truth", "schedule", "anchors", "successors", "mesh")
+UPSTREAM = ("ingest", "ground_truth", "schedule", "anchors", "surface", "mesh")
 SECTIONS = ("export", "run.device")
 OUTPUTS = ("colmap", export.TRANSFORMS, artifacts.MESH, "mesh.glb", export.FRAME)
 
@@ -77,7 +77,7 @@ def rigid(w2c: np.ndarray) -> np.ndarray:
 
 def run(ctx) -> None:
     p: Params = ctx.params
-    final_dir = ctx.input("successors") / artifacts.FINAL_ROUND
+    final_dir = ctx.input("surface")
     final = artifacts.load_round(final_dir)
     w2c, placed = final["w2c"], final["placed"].astype(bool)
     valid = placed & final["optimised"].astype(bool)

@@ -19,13 +19,13 @@ import numpy as np
 from manifoldneus import artifacts, evaluation, export, io, object_region, posefree
 
 Params = evaluation.MeshParams
-UPSTREAM = ("ingest", "anchors", "successors")
+UPSTREAM = ("ingest", "anchors", "surface")
 SECTIONS = ("meshing", "run.device", "anchors.object_min_seen")  # run.seed and run.threads do not change a mesh
 OUTPUTS = (artifacts.MESH, artifacts.POSES, "colmap")
 
 
 def run(ctx) -> None:
-    final = ctx.input("successors") / artifacts.FINAL_ROUND
+    final = ctx.input("surface")  # the final poses and the surface field
     result = artifacts.load_round(final)
     w2c, placed = result["w2c"], result["placed"].astype(bool)
     views = artifacts.load_views(ctx.input("ingest"), w2c, result["K"], result.get("distortion"))

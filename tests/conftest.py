@@ -64,7 +64,7 @@ bitwise_on_cpu = pytest.mark.skipif(TEST_DEVICE != "cpu", reason="bitwise reprod
 TINY = [
     "ingest.synthetic_views=20", "ingest.synthetic_resolution=128", "ingest.synthetic_surface_points=4000",
     "reference_surface.iters=40", "train.image_size=32", "train.batch_rays=256", "train.warmup=5", "train.log_every=10",
-    "anchors.iters=40", "successors.iters=30", "successors.final_iters=40",
+    "anchors.iters=40", "successors.iters=30", "successors.final_iters=40", "surface.iters=40",
     "field.grid_levels=3", "field.grid_max_res=32", "render.cache_res=32",
     "meshing.resolution=48", "evaluate.chamfer_points=4000", "schedule.successors_per_round=4",
     "novel_views.align_steps=40", "novel_views.align_rays=256",
