@@ -49,7 +49,7 @@ from runner import executor
 ROOT = Path(__file__).resolve().parent.parent
 
 FRONT_END = ("features", "matching", "covisibility", "spectral", "schedule")
-NEURAL = ("anchors", "successors", "mesh")
+NEURAL = ("anchors", "successors", "surface", "mesh")
 BASELINE = "pycolmap"
 DEFAULT_OUT_DIR = ROOT / "bench"
 
@@ -130,47 +130,31 @@ def rounds_total_iters(store: pipeline.Store, versions: dict[str, str] | None = 
     return int(steps)
 
 
-def fixed_pose_presets(systems: list[System], overrides: list[str]) -> set[str]:
-    """The presets that train NeuS on poses held fixed (`anchors.optimise_poses` false): compared at
-    the method's iterations, they train that many in their one round."""
-    stages = pipeline.load_stages()
-    return {s.preset for s in systems if s.preset is not None
-            and not pipeline.resolve_params(stages, overrides=overrides, preset=s.preset)["anchors"].optimise_poses}
+def surface_iters(store: pipeline.Store, version: str | None = None) -> int | None:
+    """Iterations of the field the mesh and the renderings come from (the surface stage's; the last
+    round's field where it trained none: then every round's together)."""
+    info = io.load_json(store.version_dir("surface", version or store.current("surface")) / ROUND_META)
+    return int(info["train"]["steps"]) if info.get("iters") else None
 
 
 def run_systems(scenes: list[str], systems: list[System], overrides: list[str], until: str | None, force: list[str],
                 artifacts: Path, executor_name: str = "in-process", workers: int | None = None) -> dict[str, list[Run]]:
     """Bring every selected system of every scene up to date: one run per scene and preset, on
     `executor_name`. Versions that runs share (the front-end, the reference) are computed once,
-    forced stages included, before the runs fan out. The presets on fixed poses run after the
-    method, trained for as many iterations as its rounds took together (equal iterations). Returns
-    scene -> its runs."""
+    forced stages included, before the runs fan out. Every system's surface stage trains as many
+    iterations (`surface.iters`): NeuS on fixed poses and the method compare at equal iterations.
+    Returns scene -> its runs."""
     stages = pipeline.load_stages()
     targets = targets_per_preset(systems, until)
-    fixed = fixed_pose_presets(systems, overrides) if None in targets else set()
-
-    def specs_of(presets, extra=lambda scene: []):
-        return [executor.RunSpec(f"{scene} {preset or 'default'}", scene,
-                                 dict(until=targets[preset], overrides=[*overrides, *extra(scene)], preset=preset,
-                                      artifacts=artifacts, force=force))
-                for scene in scenes for preset in presets]
-
-    specs = specs_of([p for p in targets if p not in fixed])
+    specs = [executor.RunSpec(f"{scene} {preset or 'default'}", scene,
+                              dict(until=targets[preset], overrides=list(overrides), preset=preset,
+                                   artifacts=artifacts, force=force))
+             for scene in scenes for preset in targets]
     done = list(executor.run_all(specs, executor_name, workers))  # the runs and each scene's shared preparation
-    outcomes = {o.name: o for o in done}
-    iters = {}
-    for scene in scenes:
-        method = outcomes.get(f"{scene} default")
-        if method is not None and not method.error and "successors" in method.report.fingerprints:
-            iters[scene] = rounds_total_iters(pipeline.Store(artifacts, pipeline.resolve_scene(scene).name),
-                                              method.report.fingerprints)
-    later = specs_of([p for p in targets if p in fixed],
-                     lambda scene: [f"anchors.iters={iters[scene]}"] if scene in iters else [])
-    done += executor.run_all(later, executor_name, workers)
     outcomes = {o.name: o for o in done}
     computed = set().union(*(o.computed for o in done))  # (stage, fingerprint) computed by this bench
     runs: dict[str, list[Run]] = {}
-    for spec in specs + later:
+    for spec in specs:
         preset, outcome = spec.args["preset"], outcomes[spec.name]
         params = pipeline.resolve_params(stages, overrides=spec.args["overrides"], preset=preset)
         rows = {} if outcome.error else collect(spec.scene, artifacts, preset, outcome.report, outcome.report.fingerprints)
@@ -247,8 +231,8 @@ def system_result(system: System, run: Run, store: pipeline.Store) -> dict:
         "missing_stages": [s for s in dict.fromkeys((*charged, system.scored_by)) if s not in rows],
         "wall_seconds": round(sum(r["wall_seconds"] for r in stages.values()), 2),
         "peak_rss_mib": max((r["peak_rss_mib"] for r in stages.values()), default=None),
-        **({"field_iters": rounds_total_iters(store, {k: rows[k]["fingerprint"] for k in ("anchors", "successors")})}
-           if system.key != BASELINE and "successors" in rows else {}),
+        **({"field_iters": surface_iters(store, rows["surface"]["fingerprint"])}
+           if system.key != BASELINE and "surface" in rows else {}),
         **scores,
     }
 
@@ -541,8 +525,9 @@ def notes(result: dict) -> list[str]:
     ]
     iters = {s["label"]: s.get("field_iters") for s in systems.values() if is_number(s.get("field_iters"))}
     if iters:
-        out.append("Field iterations (every round together): " + ", ".join(f"{k} {v:.0f}" for k, v in iters.items())
-                   + ". NeuS on fixed poses trains as many as ManifoldNeuS's rounds take (equal iterations).")
+        out.append("Iterations of the field the mesh and the renderings come from (the surface stage's): "
+                   + ", ".join(f"{k} {v:.0f}" for k, v in iters.items())
+                   + ". NeuS on fixed poses trains as many as ManifoldNeuS's surface (equal iterations).")
     out += [f"{s['label']} failed ({s['error']}): its row shows no mean." for s in systems.values() if s.get("error")]
     chamfer_refs = {s["chamfer_reference"] for s in systems.values() if s.get("chamfer_reference")}
     if chamfer_refs:

@@ -40,7 +40,7 @@ from manifoldneus import io
 ROOT = Path(__file__).resolve().parent.parent
 
 TIMED = ("ingest", "features", "matching", "covisibility", "spectral", "schedule", "reference", "anchors",
-         "successors", "mesh", "reference_surface", "evaluate")
+         "successors", "surface", "mesh", "reference_surface", "evaluate")
 
 
 def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_neus: bool, with_gt_pose: bool) -> dict:

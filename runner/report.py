@@ -375,7 +375,7 @@ def _run_hint(scene: str, preset: str | None) -> str:
     return f"`python pipeline.py run --scene {scene}{' --preset ' + preset if preset else ''}`"
 
 
-SYSTEM_STAGES = ("schedule", "anchors", "successors", "mesh", "evaluate")
+SYSTEM_STAGES = ("schedule", "anchors", "successors", "surface", "mesh", "evaluate")
 
 
 def section_systems(page: Page, systems: dict[str, Pointers], reference: tuple[Path | None, Path | None],

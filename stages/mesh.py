@@ -1,4 +1,4 @@
-"""mesh: the final model's surface, and the export of the method's result.
+"""mesh: the surface field's surface (stages/surface.py), and the export of the method's result.
 
 SDF on a grid inside the unit sphere -> marching cubes -> largest component(s) -> the sphere's closure
 removed -> culled by the training views' dilated masks (when masks exist), or, without masks, cropped to

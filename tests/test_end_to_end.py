@@ -120,7 +120,30 @@ def test_alpha_change_reruns_schedule_and_after_only(tiny_run):
     artifacts, _ = tiny_run
     st = pipeline.status("synthetic", overrides=TINY + ["schedule.alpha=0.3"], artifacts=artifacts)
     stale = {s for s, (state, _) in st.items() if state != "fresh"}
-    assert stale == {"schedule", "anchors", "successors", "mesh", "evaluate", "export"}
+    assert stale == {"schedule", "anchors", "successors", "surface", "mesh", "evaluate", "export"}
+
+
+def test_the_surface_is_a_field_of_every_posed_view_at_its_final_pose(tiny_run):
+    """The surface stage keeps the last round's poses to the last bit and trains a field of its own on
+    every view they pose; its keys change the surface and what reads it, never the rounds."""
+    artifacts, _ = tiny_run
+    store = pipeline.Store(artifacts, "synthetic")
+    versions = store.lineage("evaluate")
+    final, surface = versions["successors"] / "final", versions["surface"]
+    ours, last = io.load_arrays(surface / "poses.zarr"), io.load_arrays(final / "poses.zarr")
+    assert set(ours) == set(last) and all(np.array_equal(ours[k], last[k]) for k in last)
+    info = io.load_json(surface / "round.json")
+    assert info["train"]["steps"] == 40 and info["views"] == np.flatnonzero(last["optimised"]).tolist()
+    fresh = torch.load(surface / "model.pt", weights_only=False)["field"]
+    rounds = torch.load(final / "model.pt", weights_only=False)["field"]
+    assert any(not torch.equal(fresh[k], rounds[k]) for k in rounds)
+    st = pipeline.status("synthetic", overrides=TINY + ["surface.iters=0"], artifacts=artifacts)
+    assert {s for s, (state, _) in st.items() if state != "fresh"} == {"surface", "mesh", "evaluate", "export"}
+    report = pipeline.run("synthetic", until="surface", overrides=TINY + ["surface.iters=0"], artifacts=artifacts)
+    assert report["successors"] == "reused" and report["surface"] == "computed"
+    copied = current(artifacts, "surface")  # iters 0: the last round's field is the surface
+    assert (copied / "model.pt").read_bytes() == (final / "model.pt").read_bytes()
+    assert set(pipeline.run("synthetic", overrides=TINY, artifacts=artifacts).values()) == {"reused"}  # pointers back
 
 
 def test_each_value_has_one_home(tiny_run):
