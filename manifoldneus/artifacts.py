@@ -33,6 +33,7 @@ REFERENCE_POSE_METRICS = "reference_pose_metrics.json"  # evaluate_poses' scores
 # plots the report shows
 ANCHOR_ROUND = "round_0"  # the anchors' round: anchors/<version>/round_0/ (and its checkpoint round_0.pt)
 FINAL_ROUND = "final"  # successors/<version>/final: a link to its last round (a copy of round_0 when it has none)
+FIELD_FROM_MODEL = "field_from_model"  # in surface's round.json: the 4x4 similarity rounds' frame -> its field's
 SCHEDULE_PLOT = "schedule.png"
 CAMERAS_PLOT = "cameras.png"
 POSE_ERROR_PLOT = "pose_error_rounds.png"
@@ -141,6 +142,14 @@ def load_round(round_dir: Path) -> dict:
     """A pose-free round: :func:`load_round_arrays` plus ``round.json`` under 'info'."""
     out = load_round_arrays(round_dir)
     out["info"] = io.load_json(Path(round_dir) / ROUND_META)
+    return out
+
+
+def load_surface(surface_dir: Path) -> dict:
+    """``surface``'s round (:func:`load_round`: the last round's poses, in the rounds' frame) and
+    ``field_from_model`` [4,4], the similarity from that frame to the frame its field was trained in."""
+    out = load_round(surface_dir)
+    out[FIELD_FROM_MODEL] = np.asarray(out["info"][FIELD_FROM_MODEL], np.float64)
     return out
 
 

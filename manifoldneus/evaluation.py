@@ -87,6 +87,33 @@ def trainer_from_checkpoint(path: Path, views: Views, device: str = "cpu") -> Tr
     return t
 
 
+@dataclass
+class Surface:
+    """The surface stage's result: its field's ``trainer`` over the posed views ``ids`` at their poses in
+    the field's frame; ``field_from_model`` [4,4] maps the rounds' frame (the poses', the mesh's) to it."""
+
+    trainer: Trainer
+    field_from_model: np.ndarray
+    result: dict  # the round (artifacts.load_surface): w2c [N,4,4] in the rounds' frame, K, placed, optimised, ...
+    views: Views  # all N views with the round's intrinsics (and its lens distortion removed), poses in the rounds' frame
+    ids: np.ndarray
+
+
+def load_surface_field(surface_dir: Path, ingest_dir: Path, device: str = "cpu") -> Surface:
+    """The field of ``surface/<version>`` with the views of ``ingest/<version>`` posed by its round."""
+    from manifoldneus import artifacts
+
+    result = artifacts.load_surface(surface_dir)
+    views = artifacts.load_views(ingest_dir, result["w2c"], result["K"], result.get("distortion"))
+    G = result[artifacts.FIELD_FROM_MODEL]
+    ids = np.flatnonzero(result["optimised"].astype(bool))
+    w2c = cameras.transform_w2c(result["w2c"], *cameras.sim3_from_matrix(G))[ids]  # [n,4,4]
+    pick = (lambda a: None if a is None else a[ids])
+    sub = Views(views.images[ids], views.K[ids], w2c, pick(views.masks), pick(views.mono_depth),
+                pick(views.mono_normal), [views.names[i] for i in ids])
+    return Surface(trainer_from_checkpoint(Path(surface_dir) / artifacts.MODEL, sub, device), G, result, views, ids)
+
+
 def field_vertex_colours(trainer: Trainer, vertices: np.ndarray, normals: np.ndarray, chunk: int = 65536) -> np.ndarray:
     """uint8 [V,3]: the field's colour at each vertex [V,3] seen head-on (view direction = -normal,
     normals [V,3] unit): one field evaluation per vertex, no rendering."""

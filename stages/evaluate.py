@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import artifacts, evaluation, io, meshing, metrics, pose_metrics, posefree
+from manifoldneus import artifacts, cameras, evaluation, io, meshing, metrics, pose_metrics
 from manifoldneus.config import holdout_mask, param
 
 
@@ -196,17 +196,15 @@ def run(ctx) -> None:
                               "chamfer_pct_of_bbox_diagonal": 100 * ch["chamfer"] / diag}
     # --- novel views of held-out views
     held = np.flatnonzero(holdout_mask(len(names), ctx.section("split")))
-    final_dir = ctx.input("surface")
-    final = artifacts.load_round(final_dir)
     if len(held):
-        views = artifacts.load_views(ctx.input("ingest"), final["w2c"], final["K"], final.get("distortion"))
-        ids = np.flatnonzero(final["optimised"].astype(bool))
-        trainer = evaluation.trainer_from_checkpoint(final_dir / artifacts.MODEL, posefree.subset_views(views, ids, final["w2c"]),
-                                                     ctx.section("run").device)
-        test_w2c = evaluation.gt_in_model_frame(al, gt["w2c"])
+        surface = evaluation.load_surface_field(ctx.input("surface"), ctx.input("ingest"), ctx.section("run").device)
+        views = surface.views
+        # the ground truth in the rounds' frame (the Sim3 of the final poses), then in the field's
+        test_w2c = cameras.transform_w2c(evaluation.gt_in_model_frame(al, gt["w2c"]),
+                                         *cameras.sim3_from_matrix(surface.field_from_model))
         if views.masks is None and "masks" in gt:  # scored on the object too, as a masked run is
             views = dataclasses.replace(views, masks=gt["masks"])
-        report["novel_views"] = evaluation.novel_views(trainer, views, held, test_w2c, ctx.out / "novel_views",
+        report["novel_views"] = evaluation.novel_views(surface.trainer, views, held, test_w2c, ctx.out / "novel_views",
                                                        ctx.progress, align=ctx.section("novel_views"))
     io.save_json(ctx.out / artifacts.EVALUATION, report)
     fin = rows[-1]["summary"]

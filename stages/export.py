@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import artifacts, cameras, evaluation, export, io, meshing, posefree
+from manifoldneus import artifacts, cameras, evaluation, export, io, meshing
 from manifoldneus.config import param
 
 
@@ -106,10 +106,10 @@ def run(ctx) -> None:
     if not p.vertex_colours and coloured:
         mesh.visual = trimesh.visual.ColorVisuals(mesh)
     elif p.vertex_colours and len(mesh.faces) and not coloured:
-        ids = np.flatnonzero(final["optimised"].astype(bool))
-        trainer = evaluation.trainer_from_checkpoint(final_dir / artifacts.MODEL, posefree.subset_views(views, ids, w2c),
-                                                     ctx.section("run").device)
-        colours = evaluation.field_vertex_colours(trainer, np.array(mesh.vertices), np.array(mesh.vertex_normals))
+        surface = evaluation.load_surface_field(final_dir, ctx.input("ingest"), ctx.section("run").device)
+        in_field = mesh.copy().apply_transform(surface.field_from_model)  # the mesh is in the rounds' frame
+        colours = evaluation.field_vertex_colours(surface.trainer, np.array(in_field.vertices),
+                                                  np.array(in_field.vertex_normals))
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=colours)
     mesh.apply_transform(M)
     gltf_from_world = cameras.gltf_from_world(w2c_world[valid])

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from manifoldneus import artifacts, evaluation, export, io, object_region, posefree
+from manifoldneus import artifacts, cameras, evaluation, export, io, object_region
 
 Params = evaluation.MeshParams
 UPSTREAM = ("ingest", "anchors", "surface")
@@ -25,26 +25,25 @@ OUTPUTS = (artifacts.MESH, artifacts.POSES, "colmap")
 
 
 def run(ctx) -> None:
-    final = ctx.input("surface")  # the final poses and the surface field
-    result = artifacts.load_round(final)
-    w2c, placed = result["w2c"], result["placed"].astype(bool)
-    views = artifacts.load_views(ctx.input("ingest"), w2c, result["K"], result.get("distortion"))
-    ids = np.flatnonzero(result["optimised"].astype(bool))
-    trainer = evaluation.trainer_from_checkpoint(final / artifacts.MODEL, posefree.subset_views(views, ids, w2c),
-                                                 ctx.section("run").device)
+    surface = evaluation.load_surface_field(ctx.input("surface"), ctx.input("ingest"), ctx.section("run").device)
+    result, views, ids, G = surface.result, surface.views, surface.ids, surface.field_from_model
+    w2c, placed = result["w2c"], result["placed"].astype(bool)  # the rounds' frame
     masks = None if views.masks is None else views.masks[ids]
     found = io.load_json(ctx.input("anchors") / artifacts.ANCHOR_ROUND / artifacts.ROUND_META)["init"].get("object_region")
-    region = None if found is None else object_region.ObjectRegion.from_json(found)
+    region = None if found is None else object_region.ObjectRegion.from_json(found).transformed(G)
     object_points = object_points_of(result, views, ids, ctx.section("anchors").object_min_seen)
     if object_points is None:
         object_points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
-    mesh = evaluation.make_mesh(trainer, ctx.params, views.K[ids], w2c[ids], masks, views.images.shape[1:3], region,
-                                object_points)
+    # meshed in the field's frame, saved in the rounds' (the poses' and every later stage's)
+    mesh = evaluation.make_mesh(surface.trainer, ctx.params, views.K[ids], surface.trainer.views.w2c,
+                                masks, views.images.shape[1:3], region, cameras.transform_points(G, object_points))
     if ctx.params.vertex_colours and len(mesh.faces):
         import trimesh
 
-        colours = evaluation.field_vertex_colours(trainer, np.array(mesh.vertices), np.array(mesh.vertex_normals))
+        colours = evaluation.field_vertex_colours(surface.trainer, np.array(mesh.vertices),
+                                                  np.array(mesh.vertex_normals))
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=colours)
+    mesh.apply_transform(np.linalg.inv(G))
     evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params, w2c=w2c[ids])
     io.save_arrays(ctx.out / artifacts.POSES, {"w2c": w2c, "placed": placed}, chunk_first=False)
     h, w = views.images.shape[1:3]

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from manifoldneus import artifacts, io, posefree
-from manifoldneus.config import param
+from manifoldneus import artifacts, cameras, io, object_region, posefree
+from manifoldneus.config import ParamError, param
 from manifoldneus.train import Trainer, TrainRun
 
 
@@ -30,13 +30,40 @@ class Params:
     iters: int = param(1500, "Iterations of the surface field on every posed view at its final pose (0 = none: the "
                        "last round's field is the surface)", lo=0)
     start: str = param("fresh", "fresh: a new field, its grid box fitted to all views; rounds: the last round's "
-                       "field trained on (keeps what the rounds' subsets of views formed)",
+                       "field trained on (keeps what the rounds' subsets of views formed; needs frame = rounds)",
                        choices=["fresh", "rounds"])
+    frame: str = param("views", "The field's normalisation: views (the object's SfM points of every posed view, "
+                       "scaled and centred as the anchors' gauge does with theirs) or rounds (the anchors' gauge, "
+                       "fitted to the anchors' points only)", choices=["views", "rounds"])
+
+    def __post_init__(self):
+        if self.start == "rounds" and self.frame != "rounds":
+            raise ParamError("surface.start = rounds trains the last round's field on: it needs surface.frame = rounds")
 
 
 UPSTREAM = ("ingest", "anchors", "successors")
-SECTIONS = ("surface", "train", "field", "render", "loss", "run")
+SECTIONS = ("surface", "train", "field", "render", "loss", "run", "anchors.gauge_radius", "anchors.gauge_percentile",
+            "anchors.gauge_centre", "anchors.object_min_seen")
 OUTPUTS = (artifacts.POSES, artifacts.MODEL, artifacts.ROUND_META)
+
+
+def field_frame(result: dict, views, ids: np.ndarray, anchors_p) -> np.ndarray:
+    """4x4 similarity y = s (x - c) from the rounds' frame to the field's: the anchors' gauge
+    (:func:`manifoldneus.cameras.gauge_from_points`) fitted to the last round's tracks over every posed
+    view, those inside the masks of most views that see them, or without masks those in the views'
+    common frustum; identity where the round kept too few tracks."""
+    points = result.get("track_points")
+    if points is None or len(points) < 20:
+        return np.eye(4)
+    K, w2c = views.K[ids], result["w2c"][ids]
+    if views.masks is not None:
+        obj = object_region.in_mask_fraction(points, K, w2c, views.masks[ids]) > 0.5
+    else:
+        sizes = np.tile(np.asarray(views.images.shape[1:3]), (len(ids), 1))
+        obj = object_region.seen_fraction(points, K, w2c, sizes) >= anchors_p.object_min_seen
+    s, c = cameras.gauge_from_points(points[obj] if obj.sum() >= 20 else points, anchors_p.gauge_radius,
+                                     anchors_p.gauge_percentile, anchors_p.gauge_centre)
+    return cameras.sim3_matrix(s, np.eye(3), -s * c)
 
 
 def run(ctx) -> None:
@@ -45,12 +72,15 @@ def run(ctx) -> None:
     shutil.copytree(final / artifacts.POSES, ctx.out / artifacts.POSES)  # the poses are decided: the surface keeps them
     if p.iters == 0:
         shutil.copy2(final / artifacts.MODEL, ctx.out / artifacts.MODEL)
-        io.save_json(ctx.out / artifacts.ROUND_META, {"surface": "the last round's field", "iters": 0})
+        io.save_json(ctx.out / artifacts.ROUND_META, {"surface": "the last round's field", "iters": 0,
+                                                      artifacts.FIELD_FROM_MODEL: np.eye(4).tolist()})
         return
     result = artifacts.load_round(final)
-    w2c = result["w2c"]
-    views = artifacts.load_views(ctx.input("ingest"), w2c, result["K"], result.get("distortion"))
+    views = artifacts.load_views(ctx.input("ingest"), None, result["K"], result.get("distortion"))
     ids = np.flatnonzero(result["optimised"].astype(bool))
+    G = np.eye(4) if p.frame == "rounds" else field_frame(result, views, ids, ctx.section("anchors"))
+    w2c = cameras.transform_w2c(result["w2c"], *cameras.sim3_from_matrix(G))  # [N,4,4] in the field's frame
+    ctx.log.info("the field's frame: %s (scale %.4g of the rounds')", p.frame, G[0, 0])
     run_p = ctx.section("run")
     trun = TrainRun(iters=p.iters, seed=run_p.seed, threads=run_p.threads, device=run_p.device)
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
@@ -60,6 +90,8 @@ def run(ctx) -> None:
                       ctx.section("train"), run=trun, checkpoint_path=ckpt)
     if lp.w_free_space > 0 and views.masks is None:  # without masks: no surface along the SfM lines of sight
         sfm_points = artifacts.load_initial_poses(ctx.input("anchors"), list(posefree.SFM_POINTS))
+        lines = sfm_points["sight_lines"]  # [O,2,3]
+        sfm_points["sight_lines"] = cameras.transform_points(G, lines.reshape(-1, 3)).reshape(lines.shape)
         trainer.free_space = posefree.free_space_term(lp, sfm_points, trainer.rp.radius, trainer.device)
     if p.start == "rounds":
         carried = torch.load(final / artifacts.MODEL, map_location=trainer.device, weights_only=False)
@@ -78,6 +110,7 @@ def run(ctx) -> None:
     trainer.save(ctx.out / artifacts.MODEL)
     io.save_json(ctx.out / artifacts.ROUND_META, io.without_keys(
         {"surface": f"{p.start} field on {len(ids)} views at their final poses", "iters": p.iters,
-         "views": [int(v) for v in ids], "train": summary, "history": trainer.history}, posefree.RUN_FACTS))
+         "views": [int(v) for v in ids], artifacts.FIELD_FROM_MODEL: G.tolist(), "train": summary,
+         "history": trainer.history}, posefree.RUN_FACTS))
     ctx.metrics.update(views=int(len(ids)), iters=p.iters, train_seconds=round(seconds, 1),
                        final_loss=summary["final_loss"])
