@@ -11,8 +11,10 @@ import torch
 from conftest import TINY
 
 import pipeline
+import trimesh
+
 from manifoldneus.config import ParamError
-from manifoldneus import io
+from manifoldneus import cameras, evaluation, io
 
 
 def current(artifacts, stage, preset=None):
@@ -137,6 +139,17 @@ def test_the_surface_is_a_field_of_every_posed_view_at_its_final_pose(tiny_run):
     fresh = torch.load(surface / "model.pt", weights_only=False)["field"]
     rounds = torch.load(final / "model.pt", weights_only=False)["field"]
     assert any(not torch.equal(fresh[k], rounds[k]) for k in rounds)
+    # its field's frame fits every posed view's points (surface.frame = views); the mesh is back in the rounds'
+    G = np.asarray(info["field_from_model"])
+    points = last["track_points"]  # [T,3] the rounds' frame
+    lo, hi = np.percentile(cameras.transform_points(G, points), [1, 99], axis=0)
+    assert np.abs(G - np.eye(4)).max() > 0.01 and 0.6 < 0.5 * np.linalg.norm(hi - lo) < 1.0  # gauge_radius: 0.8
+    vertices = np.asarray(trimesh.load(versions["mesh"] / "mesh.ply", process=False).vertices)  # the rounds' frame
+    sdf = evaluation.load_surface_field(surface, versions["ingest"]).trainer.sdf_fn()
+    on_surface = np.abs(sdf(cameras.transform_points(G, vertices)))  # [V] the field's zero level, in its frame
+    assert np.median(on_surface) < 0.1 * np.median(np.abs(sdf(vertices)))
+    with pytest.raises(ParamError, match="surface.frame = rounds"):
+        pipeline.status("synthetic", overrides=TINY + ["surface.start=rounds"], artifacts=artifacts)
     st = pipeline.status("synthetic", overrides=TINY + ["surface.iters=0"], artifacts=artifacts)
     assert {s for s, (state, _) in st.items() if state != "fresh"} == {"surface", "mesh", "evaluate", "export"}
     report = pipeline.run("synthetic", until="surface", overrides=TINY + ["surface.iters=0"], artifacts=artifacts)
