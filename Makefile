@@ -46,7 +46,7 @@ bench: setup
 
 # do the joint rounds refine their initialisation? synthetic, scan24, scan24_idr, scan65_idr x 3 seeds (README: "Refinement")
 bench-refine: setup
-	$(PY) -m bench.bench_refine $(if $(filter command line,$(origin SCENE)),--scenes $(SCENE)) $(ARGS)
+	$(PY) -m bench.bench_refine --gt-pose $(if $(filter command line,$(origin SCENE)),--scenes $(SCENE)) $(ARGS)
 	$(PY) -m bench.results_md
 
 # where the neural trainer's step spends its time; rays per CPU-second (docs/PERFORMANCE.md)

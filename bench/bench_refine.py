@@ -2,24 +2,21 @@
 """Refinement benchmark: do the joint field-and-pose rounds refine the poses they start from?
 
     python -m bench.bench_refine [--scenes synthetic,scan24,scan24_idr,scan65_idr] [--seeds 0,1,2]
-                                 [--set section.key=value ...] [--reference-seeds 0] [--artifacts DIR]
+                                 [--set section.key=value ...] [--reference-seeds 0] [--gt-pose] [--artifacts DIR]
                                  [--label NAME] [--out-dir DIR]
 
 Per scene and seed (``run.seed``): the whole pipeline, then from the artifacts the mean rotation /
 centre error of the anchors' initialisation, of every view at its placement pose (what the rounds
 refine, on the final views), after each round (with that round's start), and the final; how many
 views kept the last round's pose update (the held-out tracks' per-view test, the others keep the
-round's start); pycolmap's errors and `sfm-all`'s (our matches,
-COLMAP's mapper and bundle adjustment on every training view at once: the preset of that name) in
-the same run; held-out
-masked PSNR of the final model and of the GT-pose NeuS (`reference_surface`) trained for the same
-number of iterations as all rounds together (for the seeds in --reference-seeds, default the
-first; the GT-pose NeuS has a seed of its own, `reference_surface.seed`, so it is trained once and
-these seeds all read that training), and of NeuS on `sfm-all`'s poses at those iterations (trained
-for each of these seeds; for the others `sfm-all` trains one iteration: its poses do not depend on
-the field);
-wall time per stage. Prints mean +- std over seeds, per scene,
-and writes ``<out-dir>/refine/<label>-<date>.json``; ``bench/results_md.py`` puts the newest into
+round's start); pycolmap's errors and `sfm-all`'s (our matches, COLMAP's mapper and bundle adjustment
+on every training view at once: the preset of that name) in the same run; held-out masked PSNR and
+Chamfer of the method's surface stage and of NeuS on `sfm-all`'s poses (that preset's surface stage,
+the same keys: equal iterations; for the seeds in --reference-seeds, default all); with --gt-pose the
+GT-pose NeuS (`reference_surface`, as many iterations; its seed is its own, `reference_surface.seed`,
+so it is trained once; on DTU it is what Chamfer is measured against); wall time per stage. Prints
+mean +- std over seeds, per scene, and writes ``<out-dir>/refine/<label>-<date>.json``;
+``bench/results_md.py`` puts the newest into
 README. Targets are checked here (``targets``), never in tests.
 """
 from __future__ import annotations

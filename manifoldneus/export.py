@@ -47,16 +47,26 @@ def shared_cameras(K: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None,
-                      points: np.ndarray | None = None, colours: np.ndarray | None = None) -> None:
+                      points: np.ndarray | None = None, colours: np.ndarray | None = None,
+                      tracks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
     """COLMAP text model: a PINHOLE camera per set of equal intrinsics (:func:`shared_cameras`), poses
-    world-to-camera, and ``points`` [P,3] with ``colours`` [P,3] uint8 as 3D points (without tracks)."""
+    world-to-camera, and ``points`` [P,3] with ``colours`` [P,3] uint8 as 3D points; ``tracks`` = (view [O],
+    point [O], uv [O,2] px) their observations (the images' POINTS2D and the points' TRACK[]: what COLMAP's
+    image_undistorter and patch_match_stereo read); observations in views not ``valid`` are left out."""
     from scipy.spatial.transform import Rotation
 
     folder.mkdir(parents=True, exist_ok=True)
     valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
+    n_points = 0 if points is None else len(points)
+    view, point, uv = tracks if tracks is not None else (np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)))
+    keep = valid[view] & (point < n_points)
+    view, point, uv = np.asarray(view)[keep], np.asarray(point)[keep], np.asarray(uv)[keep]
+    order = np.argsort(view, kind="stable")  # each image's observations together, in their order
+    view, point, uv = view[order], point[order], uv[order]
+    index = np.arange(len(view)) - np.searchsorted(view, view)  # [O] the observation's POINT2D_IDX in its image
     camera_of = shared_cameras(K, valid)
     cams = ["# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
-    imgs = ["# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "# POINTS2D[] (empty)"]
+    imgs = ["# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "# POINTS2D[] as (X, Y, POINT3D_ID)"]
     for i, name in enumerate(names):
         if not valid[i]:
             continue
@@ -68,11 +78,16 @@ def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width
         t = w2c[i][:3, 3]
         imgs.append(f"{i + 1} {w:.17g} {x:.17g} {y:.17g} {z:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} "
                     f"{camera_of[i] + 1} {image_filename(name)}")
-        imgs.append("")
-    pts = ["# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] (empty: the points of the SfM that initialised the poses)"]
+        a, b = np.searchsorted(view, [i, i + 1])
+        imgs.append(" ".join(f"{u:.6g} {v:.6g} {j + 1}" for (u, v), j in zip(uv[a:b], point[a:b])))
+    pts = ["# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)"]
+    by_point = np.argsort(point, kind="stable")
+    starts = np.searchsorted(point[by_point], np.arange(n_points + 1))
     for j, (X, c) in enumerate(zip(np.zeros((0, 3)) if points is None else points,
                                    np.zeros((0, 3), np.uint8) if colours is None else colours)):
-        pts.append(f"{j + 1} {X[0]:.9g} {X[1]:.9g} {X[2]:.9g} {int(c[0])} {int(c[1])} {int(c[2])} 0")
+        obs = by_point[starts[j]:starts[j + 1]]
+        track = "".join(f" {view[o] + 1} {index[o]}" for o in obs)
+        pts.append(f"{j + 1} {X[0]:.9g} {X[1]:.9g} {X[2]:.9g} {int(c[0])} {int(c[1])} {int(c[2])} 0{track}")
     (folder / "cameras.txt").write_text("\n".join(cams) + "\n")
     (folder / "images.txt").write_text("\n".join(imgs) + "\n")
     (folder / "points3D.txt").write_text("\n".join(pts) + "\n")

@@ -10,7 +10,8 @@ A round's artifact (`save_round`): ``poses.zarr`` (``w2c`` [N,4,4] for all views
 they belong to; ``pose_trace`` [T,N,4,4] and
 ``pose_grad_norm`` [T,N] sampled every ``log_every`` iterations, for the easy-view-bias analysis; with
 the `reprojection` correspondence term, ``track_points`` [T,3]: its tracks over the round's views triangulated
-under the poses the round ended with), ``model.pt`` (the trainer state), ``round.json`` (views, initial-pose methods, losses, timings).
+under the poses the round ended with, and their observations ``track_obs_view`` [O] (global view ids),
+``track_obs_point`` [O] (rows of track_points), ``track_obs_uv`` [O,2] px), ``model.pt`` (the trainer state), ``round.json`` (views, initial-pose methods, losses, timings).
 """
 from __future__ import annotations
 
@@ -367,8 +368,14 @@ def save_round(out_dir: Path, rnd: Round, placed: np.ndarray, info: dict) -> Non
         grads[k, rnd.ids] = g
     extra = {} if rnd.distortion_all is None else {"distortion": rnd.distortion_all}
     if isinstance(rnd.corr, correspondence.ReprojectionLoss):  # the structure of every view of the round, for the mesh's crop
-        X = rnd.corr.tr.triangulate(w2c[rnd.ids])  # [T,3]
-        extra["track_points"] = X[np.isfinite(X).all(1)]
+        tr = rnd.corr.tr
+        X = tr.triangulate(w2c[rnd.ids])  # [T,3]
+        finite = np.isfinite(X).all(1)
+        extra["track_points"] = X[finite]
+        # the observations of those points (the exported COLMAP model's tracks): global view, point, pixel
+        seen = finite[tr.track]
+        extra.update(track_obs_view=rnd.ids[tr.view[seen]], track_obs_point=(np.cumsum(finite) - 1)[tr.track[seen]],
+                     track_obs_uv=tr.uv[seen])
     io.save_arrays(out_dir / artifacts.POSES, {"w2c": w2c, "w2c_init": rnd.w2c_init, "placed": placed, "K": rnd.K_all,
                                      "optimised": np.isin(np.arange(n_views), rnd.ids),
                                      "pose_trace": trace, "pose_grad_norm": grads, **extra}, chunk_first=False)

@@ -117,7 +117,7 @@ def run(ctx) -> None:
     names = artifacts.load_views_meta(ctx.input("ingest"))["names"]
     report: dict = {"label": ctx.scene}
     if not gt_meta["has_poses"]:
-        ctx.log.warning("no ground truth: nothing to evaluate against")
+        ctx.log.info("no ground truth: nothing to score (the camera the run estimated is reported)")
         # the camera the run ended with is still worth saying: a user's photos are where it was estimated
         io.save_json(ctx.out / artifacts.EVALUATION,
                      {"has_ground_truth": False, "intrinsics": intrinsics_report(ctx, _rounds(ctx), None)})

@@ -60,7 +60,7 @@ def evaluate_pose_artifact(est_dir, gt_dir, out_dir, label: str, names=None, wit
         out = {"label": label, "evaluated": False, "reason": "the scene has no ground-truth poses"}
         io.save_json(json_path, out)
         if log:
-            log.warning("%s: no ground-truth poses, pose errors not evaluated", label)
+            log.info("%s: no ground-truth poses, pose errors not evaluated", label)
         return out
     gt = artifacts.load_ground_truth_poses(gt_dir, ["w2c", "normalization"])
     est = artifacts.load_pose_estimate(est_dir)

@@ -1,7 +1,7 @@
 """export: the result in other tools' formats, in the input's world frame.
 
 Writes, for the views with a final pose: the COLMAP text model (``colmap/``: one camera per set of
-shared intrinsics, the anchors' SfM points as ``points3D``), nerfstudio's ``transforms.json`` (OpenGL
+shared intrinsics, the last round's tracks as ``points3D`` with their observations), nerfstudio's ``transforms.json`` (OpenGL
 camera-to-world, shared intrinsics at the top level, ``ply_file_path`` = ``sparse_points.ply``, those
 points coloured from the images), the images they name
 (``images/<view>.png``, the ingested images that K refers to; ``masks/`` where the scene has masks),
@@ -116,8 +116,14 @@ def run(ctx) -> None:
     export.write_mesh(mesh, ctx.out, gltf_from_world)
 
     h, w = views.images.shape[1:3]
-    # the SfM points that initialised the anchors (the method's frame), as COLMAP's points3D and splatfacto's start
-    points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
+    # the last round's tracks over every view (the method's frame; else the SfM points that initialised the
+    # anchors, without observations), as COLMAP's points3D and splatfacto's start
+    tracks = None
+    if final.get("track_obs_view") is not None:
+        points = final["track_points"]
+        tracks = (final["track_obs_view"], final["track_obs_point"], final["track_obs_uv"])
+    else:
+        points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
     points = cameras.transform_points(M, np.asarray(points, np.float64).reshape(-1, 3))
     colours = export.point_colours(points, views.images, views.K, w2c_world, np.flatnonzero(placed))
     ply = None
@@ -125,7 +131,7 @@ def run(ctx) -> None:
         ply = "sparse_points.ply"
         export.write_points_ply(ctx.out / ply, points, colours)
     export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c_world, w, h, valid=exported,
-                             points=points, colours=colours)
+                             points=points, colours=colours, tracks=tracks)
     mask_dir = "masks" if p.images and views.masks is not None else None
     export.write_transforms_json(ctx.out / export.TRANSFORMS, views.names, views.K, w2c_world, w, h, valid=exported,
                                  mask_dir=mask_dir, ply_file_path=ply, test=held)

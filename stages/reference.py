@@ -58,6 +58,9 @@ class Params:
                              "poses by 2.6e-3 between two runs)", lo=-1)
     seed: int = param(0, "Random seed of COLMAP's RANSAC and mapper", lo=0)
     min_num_matches: int = param(15, "Minimum verified matches of a pair used by the mapper", lo=1)
+    when: str = param("cameras", "cameras: only for an input with cameras of its own to score it against (or when the "
+                      "anchors start from it, anchors.pose_init = reference); a user's photos skip it. always: every "
+                      "input", choices=["cameras", "always"])
 
     def __post_init__(self):
         unknown = set(self.refine_intrinsics) - {"focal", "principal_point"}
@@ -66,7 +69,7 @@ class Params:
 
 
 UPSTREAM = ("ingest",)
-SECTIONS = ("reference",)
+SECTIONS = ("reference", "anchors.pose_init")
 OUTPUTS = (artifacts.POSES, "sparse")
 
 
@@ -184,6 +187,19 @@ def run_colmap(
 # --------------------------------------------------------------------------- stage
 
 
+def skip(ctx, names: list[str], K: np.ndarray) -> None:
+    """No reference: every view unregistered, an empty model (what a failed mapping leaves)."""
+    ctx.log.info("skipped: the input has no cameras of its own to score pycolmap against (reference.when = always "
+                 "runs it)")
+    (Path(ctx.out) / "sparse").mkdir()
+    n = len(names)
+    artifacts.save_reference_poses(ctx.out, {"w2c": np.tile(np.eye(4), (n, 1, 1)), "registered": np.zeros(n, bool),
+                                             "K": np.asarray(K, np.float64), "points3d": np.zeros((0, 3)),
+                                             "points3d_rgb": np.zeros((0, 3), np.uint8)},
+                                   attrs={"names": names, "skipped": "the input has no cameras of its own"})
+    ctx.metrics.update(skipped=True, n_registered=0, n_views=n)
+
+
 def run(ctx) -> None:
     from manifoldneus.io import save_png
 
@@ -192,6 +208,9 @@ def run(ctx) -> None:
     meta = artifacts.load_views_meta(src)
     names = list(meta["names"])
     arrays = artifacts.load_views_arrays(src, ["images", "K"])
+    if p.when == "cameras" and not meta.get("has_cameras", True) and ctx.section("anchors").pose_init != "reference":
+        skip(ctx, names, arrays["K"])
+        return
     files = [f"{Path(nm).stem if Path(nm).suffix else nm}.png" for nm in names]
     intrinsics = sfm.intrinsics_mode(p.intrinsics, meta.get("intrinsics_source", "calibrated"))
     if len(set(files)) != len(files):

@@ -11,8 +11,9 @@ from tests.test_end_to_end import TINY
 
 def test_refinement_bench_two_seeds(tmp_path, capsys):
     over = [f"--set={o}" for o in TINY]
-    assert bench_refine.main(["--scenes", "synthetic", "--seeds", "0,1", *over, "--artifacts", str(tmp_path / "art"),
-                              "--out-dir", str(tmp_path / "bench"), "--label", "tiny"]) == 0
+    assert bench_refine.main(["--scenes", "synthetic", "--seeds", "0,1", "--reference-seeds", "0", "--gt-pose", *over,
+                              "--artifacts", str(tmp_path / "art"), "--out-dir", str(tmp_path / "bench"),
+                              "--label", "tiny"]) == 0
     printed = capsys.readouterr().out
     (path,) = (tmp_path / "bench" / "refine").glob("tiny-*.json")
     result = json.loads(path.read_text())
@@ -28,11 +29,11 @@ def test_refinement_bench_two_seeds(tmp_path, capsys):
         assert all(0 <= x["kept"] <= x["checked"] == x["n_views"] for x in r["rounds"][1:])
         assert r["stage_seconds"]["anchors"] > 0
         assert r["psnr_masked_aligned"] > 0  # held-out views scored again after test-time alignment
-    # the GT-pose NeuS only for the first seed, at the rounds' total iterations
-    assert runs[0]["gt_pose_iters"] == runs[0]["rounds_iters"] and "gt_pose_psnr_masked" not in runs[1]
-    # sfm-all: poses for every seed, NeuS on them at the rounds' iterations for the first only
-    assert runs[0]["sfm_all"]["iters"] == runs[0]["rounds_iters"] and runs[0]["sfm_all"]["psnr_masked"] > 0
-    assert runs[1]["sfm_all"]["iters"] == 1 and "psnr_masked" not in runs[1]["sfm_all"]
+    # the GT-pose NeuS at the surface's iterations, trained once (its own seed): both seeds read it
+    assert runs[0]["gt_pose_iters"] == runs[0]["surface_iters"] == 40 and runs[0]["rounds_iters"] > 40
+    assert runs[1]["gt_pose_psnr_masked"] == runs[0]["gt_pose_psnr_masked"]
+    # sfm-all: poses for every seed, NeuS on them (its surface stage) for the reference seed only
+    assert runs[0]["sfm_all"]["psnr_masked"] > 0 and "psnr_masked" not in runs[1]["sfm_all"]
     assert all(r["sfm_all"]["rot_deg"] > 0 for r in runs)
     s = result["scenes"]["synthetic"]["summary"]
     finals = [r["final"]["rot_deg"] for r in runs]  # the summary is the seeds' mean and sample std

@@ -340,6 +340,13 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     line = next(x for x in text.splitlines() if x.startswith("camera ("))
     assert line == pipeline.camera_line(ev["intrinsics"]) and "ground truth" not in line
     assert "rotation" not in text  # no pose scores without ground truth
+    # pycolmap's reference SfM is evaluation: photos without cameras skip it, unless asked for
+    store = pipeline.Store(artifacts, name)
+    reference = store.version_dir("reference", report.fingerprints["reference"])
+    assert io.load_json(reference / "manifest.json")["metrics"]["skipped"] is True
+    assert not io.load_arrays(reference / "poses.zarr", ["registered"])["registered"].any()
+    st = pipeline.status(str(photos), overrides=[*TINY, "reference.when=always"], artifacts=artifacts)
+    assert st["reference"][0] != "fresh" and st["anchors"][0] == "fresh"  # the method never read it
 
 
 def test_the_summary_of_a_run_too_small_to_score_still_ends_well(tiny_run, monkeypatch):

@@ -96,6 +96,25 @@ def test_colmap_model_has_one_camera_per_set_of_intrinsics_and_the_points(tmp_pa
     assert sorted(b[1] for b in back) == sorted(map(tuple, colours.tolist()))
 
 
+def test_colmap_model_carries_the_tracks_of_its_points(tmp_path):
+    """Each point's observations become the images' POINTS2D and the point's TRACK[]: pycolmap finds every
+    observation back, and projecting a point reproduces its observed pixels."""
+    pycolmap = pytest.importorskip("pycolmap")
+    K, w2c = random_cameras(3)
+    points = np.random.default_rng(1).normal(scale=0.3, size=(6, 3))
+    view, point = np.array([2, 0, 1, 0, 2, 1, 0, 2]), np.array([0, 0, 1, 1, 1, 3, 5, 5])
+    Xc = np.einsum("oij,oj->oi", w2c[view, :3, :3], points[point]) + w2c[view, :3, 3]
+    uv = np.einsum("oij,oj->oi", K[view], Xc)[:, :2] / Xc[:, 2:]
+    valid = np.array([True, False, True])  # view 1 not exported: its observations neither
+    export.write_colmap_text(tmp_path, ["a", "b", "c"], K, w2c, 192, 128, valid=valid, points=points,
+                             colours=np.zeros((6, 3), np.uint8), tracks=(view, point, uv))
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    assert rec.compute_num_observations() == int(valid[view].sum()) == 6
+    assert rec.compute_mean_reprojection_error() < 1e-4
+    lengths = sorted(p.track.length() for p in rec.points3D.values())
+    assert lengths == [0, 0, 0, 2, 2, 2]  # points 0, 1, 5 in views a and c; point 3 only in b (not exported)
+
+
 def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
     """The tiny run's exports: the COLMAP model (read by pycolmap) and transforms.json give the same
     poses to 1e-9, namely the final poses mapped by world_from_model.json; in the synthetic scene
@@ -152,16 +171,20 @@ def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
     # the mesh stage's own mesh carries them already; the export keeps them
     assert model.visual.kind == "vertex" and np.array_equal(np.asarray(model.visual.vertex_colors)[:, :3], colours)
 
-    # the SfM points: COLMAP's points3D and transforms.json's ply_file_path, in the same frame
+    # the last round's tracks: COLMAP's points3D with their observations and transforms.json's ply_file_path,
+    # in the same frame; COLMAP's own reprojection error of them is what the rounds' tracks fit
     import pycolmap
 
-    sfm = io.load_arrays(versions["anchors"] / "initial_poses.zarr", ["object_points"])["object_points"]
+    sfm = final["track_points"]
     meta = json.loads((out / export.TRANSFORMS).read_text())
     assert len(sfm) > 20 and meta["ply_file_path"] == "sparse_points.ply" and "fl_x" in meta  # one camera
     cloud = trimesh.load(out / meta["ply_file_path"])
     np.testing.assert_allclose(cloud.vertices, cameras.transform_points(frame["world_from_model"], sfm), atol=1e-5)
     rec = pycolmap.Reconstruction(str(out / "colmap"))
     assert len(rec.points3D) == len(sfm) and len(rec.cameras) == 1
+    assert rec.compute_num_observations() == int(placed[final["track_obs_view"]].sum()) > 2 * len(sfm)
+    assert all(p.track.length() >= 2 for p in rec.points3D.values())
+    assert rec.compute_mean_reprojection_error() < 2.0  # px
     # coloured from the photos, not the grey of points no view sees
     assert np.asarray(cloud.colors)[:, :3].std() > 5
 
