@@ -253,6 +253,22 @@ def _refuse_damaged(store: Store, stage: str, fingerprint: str, rebuild: str, de
                             f"{f', and {len(problems) - 1} more' if len(problems) > 1 else ''}); rebuild it: {rebuild}")
 
 
+def expected_time(store: Store, stages: list[str]) -> str:
+    """' (earlier runs: about N min, M min for the run's rest)': the stage's and the remaining ``stages``'
+    wall times in this scene's newest versions (an upper bound: some of the rest may be up to date), or ''
+    where the scene has no version of the stage yet."""
+    first = store.recorded_seconds(stages[0])
+    if first is None:
+        return ""
+    rest = sum(store.recorded_seconds(s) or 0.0 for s in stages)
+
+    def minutes(seconds: float) -> str:
+        return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.0f} min"
+
+    return f" (earlier runs: about {minutes(first)}" + (f", at most {minutes(rest)} for the run's rest)"
+                                                        if len(stages) > 1 else ")")
+
+
 def run(
     scene_name: str,
     until: str | list[str] | None = None,
@@ -318,7 +334,8 @@ def run(
                 if needs_computing(name, fp):
                     with store.computing(name, fp):
                         if needs_computing(name, fp):  # else another run computed it while this one waited
-                            print(f"[{name}] running ({fp}) ...", file=sys.stderr)
+                            print(f"[{name}] running ({fp}) ...{expected_time(store, selected[selected.index(name):])}",
+                                  file=sys.stderr)
                             execute(stage, resolved, store, fps, scene)
                             manifest = store.manifest(name, fp)
                             report[name] = "computed"

@@ -98,6 +98,18 @@ class Store:
             return None
         return json.loads((self.version_dir(stage, fingerprint) / MANIFEST).read_text())
 
+    def recorded_seconds(self, stage: str) -> float | None:
+        """The wall time of the stage's newest complete version of this scene (any parameters), or None."""
+        best = None
+        for manifest in self.stage_dir(stage).glob(f"*/{MANIFEST}"):
+            try:
+                when, seconds = manifest.stat().st_mtime, json.loads(manifest.read_text())["wall_seconds"]
+            except (OSError, ValueError, KeyError):
+                continue
+            if best is None or when > best[0]:
+                best = (when, float(seconds))
+        return None if best is None else best[1]
+
     def lineage(self, stage: str, beside: tuple[str, ...] = ()) -> dict[str, Path]:
         """The current version of ``stage`` and the versions of all its upstream stages that it was
         computed from (as its manifests name them): one consistent set, whatever the other stages'

@@ -928,3 +928,24 @@ def test_the_installed_command_is_the_pipelines_command_line(tmp_path):
     assert out.returncode == 0 and out.stdout.startswith("ingest") and "never computed" in out.stdout
     usage = subprocess.run([str(command), "--help"], capture_output=True, text=True, timeout=120).stdout
     assert usage.startswith("usage: manifoldneus ")
+
+
+def test_a_stage_says_how_long_earlier_runs_of_it_and_the_rest_took(tmp_path):
+    """The estimate printed as a stage starts: its newest version's wall time in this scene, and at most the
+    sum of the newest versions of it and the stages after it; nothing for a stage this scene never ran."""
+    import os
+
+    import runner.execute
+
+    store = runner.store.Store(tmp_path, "scene")
+    for stage, versions in {"anchors": [("old", 900.0), ("new", 80.0)], "surface": [("a", 200.0)]}.items():
+        for k, (fp, seconds) in enumerate(versions):
+            folder = store.version_dir(stage, fp)
+            folder.mkdir(parents=True)
+            (folder / "manifest.json").write_text(json.dumps({"wall_seconds": seconds}))
+            os.utime(folder / "manifest.json", (1e9 + k, 1e9 + k))  # the later one is the newer
+    assert store.recorded_seconds("anchors") == 80.0 and store.recorded_seconds("mesh") is None
+    assert runner.execute.expected_time(store, ["anchors", "surface", "mesh"]) == \
+        " (earlier runs: about 80 s, at most 5 min for the run's rest)"
+    assert runner.execute.expected_time(store, ["surface"]) == " (earlier runs: about 3 min)"
+    assert runner.execute.expected_time(store, ["mesh", "surface"]) == ""
