@@ -12,10 +12,10 @@ PY := .venv/bin/python
 
 setup: .venv/.installed
 # an editable install: the checkout is the code that runs; pyproject.toml lists what it needs
-.venv/.installed: pyproject.toml
+.venv/.installed: pyproject.toml constraints.txt
 	python3 -m venv .venv
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e ".[dask,dev]"
+	$(PY) -m pip install -q -c constraints.txt -e ".[dask,dev]"
 	$(PY) -c "from manifoldneus.grid_encoding import fused_kernel; fused_kernel()"  # builds the CPU grid kernel once
 	touch $@
 

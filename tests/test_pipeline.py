@@ -930,6 +930,27 @@ def test_the_installed_command_is_the_pipelines_command_line(tmp_path):
     assert usage.startswith("usage: manifoldneus ")
 
 
+def test_torch_is_held_at_the_tested_build_only_by_make_setup():
+    """pyproject.toml admits a user's own torch (a CUDA build of another version); constraints.txt, which make
+    setup installs with, holds the venv at the tested build, and that is the torch installed here."""
+    import importlib.metadata
+    import tomllib
+    from pathlib import Path
+
+    from packaging.requirements import Requirement
+
+    root = Path(__file__).resolve().parent.parent
+    wanted = [Requirement(r) for r in tomllib.loads((root / "pyproject.toml").read_text())["project"]["dependencies"]]
+    torch_req = next(r for r in wanted if r.name == "torch")
+    pins = [Requirement(line) for line in (root / "constraints.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")]
+    pin = next(r for r in pins if r.name == "torch")
+    tested = next(iter(pin.specifier)).version
+    assert torch_req.specifier.contains("2.5.1") and torch_req.specifier.contains(tested)
+    assert "-c constraints.txt" in (root / "Makefile").read_text()
+    assert importlib.metadata.version("torch").split("+")[0] == tested
+
+
 def test_a_stage_says_how_long_earlier_runs_of_it_and_the_rest_took(tmp_path):
     """The estimate printed as a stage starts: its newest version's wall time in this scene, and at most the
     sum of the newest versions of it and the stages after it; nothing for a stage this scene never ran."""
