@@ -11,7 +11,7 @@
 * ``world_from_model.json``: the similarity from the method's unit-sphere frame to the frame of the
   exports (:func:`write_frame`), so that any result of the pipeline can be brought into it.
 
-Image file names are ``<view name>.png`` everywhere, white space as ``_`` (:func:`image_filename`).
+Image file names are ``<view name>.<format>``, white space as ``_`` (:func:`image_filename`).
 """
 from __future__ import annotations
 
@@ -27,10 +27,11 @@ TRANSFORMS = "transforms.json"
 FRAME = "world_from_model.json"
 
 
-def image_filename(name: str) -> str:
+def image_filename(name: str, suffix: str = ".png") -> str:
     """The file name of a view's image in every export (and in the reference stage's COLMAP run): white
-    space becomes ``_``, since COLMAP's text models end a name at the first space."""
-    return re.sub(r"\s", "_", name) + ".png"
+    space becomes ``_``, since COLMAP's text models end a name at the first space; ``suffix`` the file's
+    format (a PNG of the ingested pixels, or the input file's own)."""
+    return re.sub(r"\s", "_", name) + suffix
 
 
 def shared_cameras(K: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -48,11 +49,12 @@ def shared_cameras(K: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None,
                       points: np.ndarray | None = None, colours: np.ndarray | None = None,
-                      tracks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+                      tracks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, suffixes=None) -> None:
     """COLMAP text model: a PINHOLE camera per set of equal intrinsics (:func:`shared_cameras`), poses
     world-to-camera, and ``points`` [P,3] with ``colours`` [P,3] uint8 as 3D points; ``tracks`` = (view [O],
     point [O], uv [O,2] px) their observations (the images' POINTS2D and the points' TRACK[]: what COLMAP's
-    image_undistorter and patch_match_stereo read); observations in views not ``valid`` are left out."""
+    image_undistorter and patch_match_stereo read); observations in views not ``valid`` are left out.
+    ``suffixes``: each view's image format (:func:`image_filename`; default PNG)."""
     from scipy.spatial.transform import Rotation
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -77,7 +79,7 @@ def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width
         x, y, z, w = Rotation.from_matrix(w2c[i][:3, :3]).as_quat()
         t = w2c[i][:3, 3]
         imgs.append(f"{i + 1} {w:.17g} {x:.17g} {y:.17g} {z:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} "
-                    f"{camera_of[i] + 1} {image_filename(name)}")
+                    f"{camera_of[i] + 1} {image_filename(name, *([] if suffixes is None else [suffixes[i]]))}")
         a, b = np.searchsorted(view, [i, i + 1])
         imgs.append(" ".join(f"{u:.6g} {v:.6g} {j + 1}" for (u, v), j in zip(uv[a:b], point[a:b])))
     pts = ["# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)"]
@@ -118,14 +120,15 @@ def write_points_ply(path: Path, points: np.ndarray, colours: np.ndarray) -> Non
 
 def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None,
                           image_dir: str = "images", mask_dir: str | None = None,
-                          ply_file_path: str | None = None, test=None) -> dict:
+                          ply_file_path: str | None = None, test=None, suffixes=None) -> dict:
     """nerfstudio's ``transforms.json`` (its ``nerfstudio-data`` layout) for the ``valid`` views:
     per frame ``file_path`` (relative to the file) and ``transform_matrix``, the camera-to-world pose
     with OpenGL camera axes; pinhole intrinsics ``fl_x fl_y cx cy w h`` in pixels (pixel centres at
     +0.5, as COLMAP and nerfstudio) at the top level when every view shares them, else per frame;
     ``ply_file_path`` (relative) names the initial point cloud. ``test`` (bool [N]): views of nerfstudio's
     test and validation split (``test_filenames``, ``val_filenames``; the other valid views are
-    ``train_filenames``); None or none of them: no split is written. Returns what it wrote."""
+    ``train_filenames``); None or none of them: no split is written. ``suffixes``: each view's image format
+    (:func:`image_filename`; default PNG; masks are PNGs). Returns what it wrote."""
     valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
     c2w = cameras.opengl_c2w(w2c)  # [N,4,4]
 
@@ -136,7 +139,8 @@ def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, wid
     shared = valid.any() and shared_cameras(K, valid).max() == 0
     frames = []
     for i in np.flatnonzero(valid):
-        frame = {"file_path": f"{image_dir}/{image_filename(names[i])}", **({} if shared else intrinsics(K[i])),
+        image = image_filename(names[i], *([] if suffixes is None else [suffixes[i]]))
+        frame = {"file_path": f"{image_dir}/{image}", **({} if shared else intrinsics(K[i])),
                  "transform_matrix": c2w[i].tolist()}
         if mask_dir is not None:
             frame["mask_path"] = f"{mask_dir}/{image_filename(names[i])}"

@@ -267,7 +267,7 @@ def undistorted(views: dict, distortion: np.ndarray) -> dict:
 
 
 # Arrays and lists with one entry per view, in view order: what a view subset must slice.
-PER_VIEW_KEYS = ("images", "K", "masks", "mono_depth", "mono_normal", "names", "w2c")
+PER_VIEW_KEYS = ("images", "K", "masks", "mono_depth", "mono_normal", "names", "w2c", "files")
 
 
 def every_nth_view(data: dict, stride: int) -> dict:
@@ -282,7 +282,8 @@ def every_nth_view(data: dict, stride: int) -> dict:
 
 
 def read_views(ref: SceneRef, p) -> dict:
-    """Canonical views (see docs/STAGES.md) plus ``names``, ``layout`` and ``intrinsics_source``
+    """Canonical views (see docs/STAGES.md) plus ``names``, ``layout``, ``files`` (where it has them: each view's
+    image file, None where the pixels are not the file's, e.g. undistorted) and ``intrinsics_source``
     (calibrated: the layout's cameras; given: ``ingest.intrinsics``; exif: the photos' EXIF focal
     length; default: a guess, 1.2 x the larger side); ``p`` is IngestParams."""
     if ref.kind == "synthetic":
@@ -300,6 +301,8 @@ def read_views(ref: SceneRef, p) -> dict:
         views["layout"] = layout
     source = views.pop("intrinsics_source", "calibrated")
     views["K"], source = _intrinsics_in_use(views["K"], source, views["images"].shape[1:3], p)
+    if p.distortion or p.downscale != 1:  # the files no longer hold the views' pixels
+        views.pop("files", None)
     if p.distortion:
         views = undistorted(views, np.asarray(p.distortion, np.float64))
     views = every_nth_view(views, p.view_stride)
@@ -369,6 +372,7 @@ def _monosdf_views(path: Path, p) -> dict:
         "images": images,
         "K": _monosdf_intrinsics([cams[f"world_mat_{i}"] for i in range(n)], w, p.monosdf_original_size),
         "names": stems,
+        "files": [str(f) for f in rgb],
     }
     masks = [path / f"{s}_mask.png" for s in stems]
     if any(m.exists() for m in masks):
@@ -397,6 +401,7 @@ def _idr_views(path: Path, p) -> dict:
         "images": np.stack([io.read_image(f) for f in files]),
         "K": np.stack([cameras.decompose_projection(cams[f"world_mat_{i}"])[0] for i in range(n)]),
         "names": [f.stem for f in files],
+        "files": [str(f) for f in files],
     }
     masks = _list_images(path / "mask")
     if masks:
@@ -466,11 +471,13 @@ def _colmap_views(path: Path, p) -> dict:
     _refuse_mixed_sizes(pixels, [im.name for im in images], folder, "image(s) of the COLMAP model")
     model_dir = _colmap_model_dir(path)
     K = np.stack([_colmap_K(rec.cameras[im.camera_id]) for im in images])
+    given = [str(f) for f in files]  # the files whose pixels are the views' (None: undistorted here)
     for i, im in enumerate(images):
         d = _colmap_distortion(rec.cameras[im.camera_id], model_dir)
         if d is not None:
             pixels[i] = cameras.undistort_image(pixels[i], K[i], d)
-    return {"images": np.stack(pixels), "K": K, "names": names}
+            given[i] = None
+    return {"images": np.stack(pixels), "K": K, "names": names, "files": given}
 
 
 def _refuse_mixed_sizes(images: list, labels: list[str], folder: Path, what: str = "image(s)") -> None:
@@ -494,7 +501,7 @@ def _plain_views(path: Path, p) -> dict:
     fx, fy, cx, cy, source = _estimate_intrinsics(files[0], w, h)  # ingest.intrinsics, when given, replaces it
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
     return {"images": np.stack(images), "K": np.repeat(K[None], len(files), 0), "names": [f.stem for f in files],
-            "intrinsics_source": source}
+            "files": [str(f) for f in files], "intrinsics_source": source}
 
 
 def _estimate_intrinsics(image_path: Path, w: int, h: int) -> tuple[float, float, float, float, str]:

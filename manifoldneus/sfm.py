@@ -1,4 +1,4 @@
-"""Structure from motion through pycolmap: the one module that talks to COLMAP.
+"""Structure from motion through pycolmap: mapping, bundle adjustment and absolute pose for the stages.
 
 Both users go through here: the anchors' initialisation (our SIFT keypoints and verified matches
 written into a COLMAP database, then COLMAP's incremental mapper and bundle adjustment, the way

@@ -4,7 +4,8 @@ Writes, for the views with a final pose: the COLMAP text model (``colmap/``: one
 shared intrinsics, the last round's tracks as ``points3D`` with their observations), nerfstudio's ``transforms.json`` (OpenGL
 camera-to-world, shared intrinsics at the top level, ``ply_file_path`` = ``sparse_points.ply``, those
 points coloured from the images), the images they name
-(``images/<view>.png``, the ingested images that K refers to; ``masks/`` where the scene has masks),
+(``images/<view>.<format>``: the input's own files where their pixels are those K refers to, else PNGs of the
+ingested images, ``export.image_files``; ``masks/`` where the scene has masks),
 and the final mesh as ``mesh.ply`` and ``mesh.glb`` with vertex colours from the final field (the
 glTF turned so that the cameras' vertical is +Y, glTF's up; the turn is in ``world_from_model.json``).
 
@@ -21,7 +22,9 @@ photo folder) has no input world: the exports stay in the method's unit-sphere f
 """
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -40,6 +43,10 @@ class Params:
                          "(without the lens distortion the self-calibration found, if it found one: the exported "
                          "cameras are pinhole cameras)")
     vertex_colours: bool = param(True, "Colour the mesh's vertices with the final field's colour seen head-on")
+    image_files: str = param("as_given", "as_given: each exported image is the input's own file (its format and "
+                             "bytes) where its pixels are the ingested ones (no lens distortion removed, no downscale, "
+                             "no EXIF rotation to apply), else a PNG of the ingested pixels; png: always a PNG",
+                             choices=["as_given", "png"])
 
 
 UPSTREAM = ("ingest", "ground_truth", "schedule", "anchors", "surface", "mesh")
@@ -73,6 +80,23 @@ def rigid(w2c: np.ndarray) -> np.ndarray:
     out = cameras.to_4x4(w2c)
     out[:, :3, :3] = Rotation.from_matrix(out[:, :3, :3]).as_matrix()
     return out
+
+
+def given_files(files: list | None, n: int, pinhole: bool, how: str) -> list:
+    """Per view the input's own image file to export as it is, or None (a PNG of the ingested pixels):
+    only where the ingest kept the file's pixels, no lens distortion was removed (``pinhole``) and the file
+    asks no viewer to rotate it (EXIF orientation 1: the ingest reads pixels as stored)."""
+    from PIL import Image
+
+    def as_is(path) -> bool:
+        if path is None or not Path(path).is_file():
+            return False
+        with Image.open(path) as im:
+            return im.getexif().get(0x0112, 1) == 1
+
+    if files is None or how != "as_given" or not pinhole:
+        return [None] * n
+    return [f if as_is(f) else None for f in files]
 
 
 def run(ctx) -> None:
@@ -130,18 +154,24 @@ def run(ctx) -> None:
     if len(points):
         ply = "sparse_points.ply"
         export.write_points_ply(ctx.out / ply, points, colours)
+    given = given_files(artifacts.load_views_meta(ctx.input("ingest")).get("files"), len(views.names), lens_k1 is None,
+                        p.image_files)
+    suffixes = [".png" if f is None else Path(f).suffix for f in given]
     export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c_world, w, h, valid=exported,
-                             points=points, colours=colours, tracks=tracks)
+                             points=points, colours=colours, tracks=tracks, suffixes=suffixes)
     mask_dir = "masks" if p.images and views.masks is not None else None
     export.write_transforms_json(ctx.out / export.TRANSFORMS, views.names, views.K, w2c_world, w, h, valid=exported,
-                                 mask_dir=mask_dir, ply_file_path=ply, test=held)
+                                 mask_dir=mask_dir, ply_file_path=ply, test=held, suffixes=suffixes)
     if p.images:
         for folder, stack in (("images", views.images), (mask_dir, views.masks)):
             if folder is None:
                 continue
             (ctx.out / folder).mkdir()
             for i in np.flatnonzero(exported):
-                io.save_png(ctx.out / folder / export.image_filename(views.names[i]), stack[i])
+                if folder == "images" and given[i] is not None:
+                    shutil.copyfile(given[i], ctx.out / folder / export.image_filename(views.names[i], suffixes[i]))
+                else:
+                    io.save_png(ctx.out / folder / export.image_filename(views.names[i]), stack[i])
     export.write_frame(ctx.out / export.FRAME, M, frame, units, how, gltf_from_world)
     ctx.metrics.update(frame=frame, units=units, scale=s, views_exported=int(placed.sum()), held_out_exported=int(held.sum()), sfm_points=len(points),
                        lens_k1_removed=lens_k1,

@@ -85,6 +85,7 @@ def run(ctx) -> None:
     names = views.pop("names")
     layout = views.pop("layout")
     intrinsics_source = views.pop("intrinsics_source")
+    files = views.pop("files", None)  # the input's own image file of each view, where its pixels are the view's
     n, h, w = views["images"].shape[:3]
     if n < MIN_VIEWS:
         raise scenes.SceneError(f"{ctx.scene_ref.path or ctx.scene}: {n} view(s); pose-free reconstruction needs at "
@@ -98,6 +99,7 @@ def run(ctx) -> None:
         "has_mono_normal": "mono_normal" in views, "intrinsics_source": intrinsics_source,
         "has_cameras": scenes.layout_has_cameras(layout), "undistorted_with": list(p.distortion),
         "source": str(ctx.scene_ref.path) if ctx.scene_ref.path else ctx.scene_ref.name,
+        "files": files,
     })
     io.save_png(ctx.out / "contact_sheet.png", contact_sheet(views["images"], views.get("masks")))
     ctx.metrics.update(n_views=n, width=w, height=h, layout=layout, intrinsics_source=intrinsics_source,

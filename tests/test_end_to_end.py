@@ -323,11 +323,19 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     without ground truth)."""
     from manifoldneus import synthetic
 
+    from PIL import Image
+
     photos = tmp_path / "photos"
     photos.mkdir()
     K = synthetic.intrinsics(128, 128)
-    for i, w2c in enumerate(synthetic.camera_poses(20)):  # TINY's synthetic scene, as photos
-        io.save_png(photos / f"IMG_{i:04d}.png", synthetic.render_view(K, w2c, 128, 128, seed=3)[0])
+    for i, w2c in enumerate(synthetic.camera_poses(20)):  # TINY's synthetic scene, as photos: JPEGs and PNGs
+        image = synthetic.render_view(K, w2c, 128, 128, seed=3)[0]
+        if i % 2:
+            io.save_png(photos / f"IMG_{i:04d}.png", image)
+        else:
+            exif = Image.Exif()
+            exif[0x0112] = 3 if i == 4 else 1  # IMG_0004 asks viewers to turn it upside down
+            Image.fromarray(image).save(photos / f"IMG_{i:04d}.jpg", quality=95, exif=exif)
     artifacts = tmp_path / "artifacts"
     report = pipeline.run(str(photos), overrides=TINY, artifacts=artifacts)
     assert report["evaluate"] == "computed" and report["export"] == "computed"
@@ -340,6 +348,13 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     line = next(x for x in text.splitlines() if x.startswith("camera ("))
     assert line == pipeline.camera_line(ev["intrinsics"]) and "ground truth" not in line
     assert "rotation" not in text  # no pose scores without ground truth
+    # the export hands the photos over as they came (the JPEGs' bytes), but for the one a viewer would turn
+    exported = artifacts / name / "export" / report.fingerprints["export"]
+    frames = {Path(f["file_path"]).name: f for f in io.load_json(exported / "transforms.json")["frames"]}
+    assert {"IMG_0002.jpg", "IMG_0003.png", "IMG_0004.png"} <= set(frames)
+    assert (exported / "images" / "IMG_0002.jpg").read_bytes() == (photos / "IMG_0002.jpg").read_bytes()
+    assert (exported / "images" / "IMG_0004.png").is_file() and not (exported / "images" / "IMG_0004.jpg").exists()
+    assert "IMG_0002.jpg" in (exported / "colmap" / "images.txt").read_text()
     # pycolmap's reference SfM is evaluation: photos without cameras skip it, unless asked for
     store = pipeline.Store(artifacts, name)
     reference = store.version_dir("reference", report.fingerprints["reference"])
