@@ -483,6 +483,23 @@ def section_losses(page: Page, rounds: dict[str, list[RoundPoses]]) -> None:
             page.missing(f"{name} training history")
 
 
+def section_run(page: Page, systems: dict[str, Pointers]) -> None:
+    """The camera each run estimated and what each stage took (from the manifests): what a run on photos
+    without ground truth has to show."""
+    from runner.inspect import camera_line
+    from runner.registry import load_stages
+
+    page.add("## The run: camera and time per stage", "")
+    for name, ptr in systems.items():
+        ev = ptr.file("evaluate", "evaluation.json")
+        intrinsics = io.load_json(ev).get("intrinsics") if ev else None
+        page.add(f"### {name}", "", f"`{camera_line(intrinsics)}`" if intrinsics else "_camera: not evaluated yet._", "")
+        rows = [(stage, ptr.store.manifest(stage)) for stage in load_stages() if ptr.get(stage) is not None]
+        page.add("| stage | wall s | CPU s | peak MiB |", "|---|---:|---:|---:|",
+                 *(f"| {stage} | {m['wall_seconds']:.1f} | {m.get('cpu_seconds', float('nan')):.1f} | "
+                   f"{m.get('peak_rss_mib', float('nan')):.0f} |" for stage, m in rows), "")
+
+
 def section_meshes(page: Page, systems: dict[str, Pointers]) -> None:
     page.add("## Mesh previews (3 viewpoints)", "")
     for name, ptr in systems.items():
@@ -595,23 +612,35 @@ def build_report(scene: str, artifacts: Path = DEFAULT_ARTIFACTS, out: Path | No
     rows = {system: pose_error_rows(rr, gt) for system, rr in rounds.items() if rr} if gt else {}
 
     page = Page(out)
-    page.add(f"# Report: {name}", "",
-             f"Built {dt.datetime.now().isoformat(timespec='seconds')} from the artifacts in `{Path(artifacts)}` "
-             "only (nothing was trained). Systems: ManifoldNeuS (default run), the presets `neus-barf`, "
-             "`neus-colmap` and `sfm-all`, and the pycolmap reference (stages `reference` + `evaluate_poses`).", "")
-    section_systems(page, systems, reference, scene)
-    section_viewer(page, systems, scene)
-    section_pose_errors(page, rows, gt, scene)
-    if gt and rows.get("ManifoldNeuS"):
-        placed = placement_round(rounds["ManifoldNeuS"])
-        names = load_views_meta(shared_stage(pointers, "ingest"))["names"]
-        section_pose_per_view(page, rows, pose_error_rows([placed], gt) if placed else None, names)
-    section_schedule(page, systems, scene)
-    section_cameras(page, systems, reference, rows, gt)
-    section_losses(page, {s: rounds[s] for s in systems})
-    section_meshes(page, systems)
-    section_heldout(page, systems)
-    bias = section_bias(page, systems, rounds, gt)
+    built = (f"Built {dt.datetime.now().isoformat(timespec='seconds')} from the artifacts in `{Path(artifacts)}` "
+             "only (nothing was trained).")
+    bias = {}
+    if gt is None:  # a user's photos: nothing to score or compare; what the runs made
+        systems = {s: ptr for s, ptr in systems.items() if any(ptr.get(st) for st in SYSTEM_STAGES)}
+        page.add(f"# Report: {name}", "", f"{built} The scene has no ground truth: no pose errors, held-out views "
+                 "or comparisons; below, what each run made (systems run: " + ", ".join(systems) + ").", "")
+        section_run(page, systems)
+        section_viewer(page, systems, scene)
+        section_schedule(page, systems, scene)
+        section_losses(page, {s: rounds[s] for s in systems})
+        section_meshes(page, systems)
+    else:
+        page.add(f"# Report: {name}", "", f"{built} Systems: ManifoldNeuS (default run), the presets `neus-barf`, "
+                 "`neus-colmap` and `sfm-all`, and the pycolmap reference (stages `reference` + `evaluate_poses`).", "")
+        section_systems(page, systems, reference, scene)
+        section_viewer(page, systems, scene)
+        section_pose_errors(page, rows, gt, scene)
+        if rows.get("ManifoldNeuS"):
+            placed = placement_round(rounds["ManifoldNeuS"])
+            names = load_views_meta(shared_stage(pointers, "ingest"))["names"]
+            section_pose_per_view(page, rows, pose_error_rows([placed], gt) if placed else None, names)
+        section_schedule(page, systems, scene)
+        section_cameras(page, systems, reference, rows, gt)
+        section_losses(page, {s: rounds[s] for s in systems})
+        section_run(page, systems)
+        section_meshes(page, systems)
+        section_heldout(page, systems)
+        bias = section_bias(page, systems, rounds, gt)
 
     (out / "report.md").write_text("\n".join(page.lines) + "\n")
     io.save_json(out / "report.json", {

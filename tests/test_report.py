@@ -72,7 +72,7 @@ def test_pose_error_row_per_round_and_missing_system(built_report):
     for system, labels in expected.items():
         rows = re.findall(rf"^\| {system} \| (\w+) \| \d+ \| [\d.]+ \|", text, re.M)
         assert rows == labels, system
-    assert re.search(r"^\| NeuS-COLMAP \| neus-colmap \| - \| schedule, anchors, successors, mesh, evaluate: ",
+    assert re.search(r"^\| NeuS-COLMAP \| neus-colmap \| - \| schedule, anchors, successors, surface, mesh, evaluate: ",
                      text, re.M)
     assert "| NeuS-COLMAP | initial |" not in text
 
