@@ -124,11 +124,29 @@ def subset_views(views: Views, ids, w2c_all: np.ndarray) -> Views:
                  pick(views.mono_normal), [views.names[i] for i in ids])
 
 
-def train_run(run: RunParams, iters: int, pose_lr: float, pose_warmup_frac: float, learn_poses: bool,
-              learn_translation: bool = True) -> TrainRun:
-    """One round's run: its length and pose optimiser (the stage's section), the run's device."""
-    return TrainRun(iters=iters, learn_poses=learn_poses, pose_lr=pose_lr, learn_translation=learn_translation,
-                    pose_warmup=int(round(pose_warmup_frac * iters)), seed=run.seed, threads=run.threads,
+@dataclasses.dataclass(frozen=True)
+class PoseLearning:
+    """How a round learns its views' poses: the keys of the stage's section that say it (`anchors`,
+    `successors`: :meth:`of`)."""
+
+    learn: bool = False
+    lr: float = 0.0
+    warmup_frac: float = 0.0  # the pose lr's warm-up, as a fraction of the round
+    start_frac: float = 0.0  # poses frozen for this fraction of the round (the field fits first)
+    correspondence_weight: float = 0.0  # of the correspondence term in the pose loss
+    translation: bool = True  # False: rotations only (every camera centre stays at its start)
+
+    @classmethod
+    def of(cls, p) -> "PoseLearning":
+        """From a stage's Params (``optimise_poses``, ``pose_lr``, ``pose_warmup_frac``, ``pose_start_frac``,
+        ``correspondence_weight``)."""
+        return cls(p.optimise_poses, p.pose_lr, p.pose_warmup_frac, p.pose_start_frac, p.correspondence_weight)
+
+
+def train_run(run: RunParams, iters: int, poses: PoseLearning) -> TrainRun:
+    """One round's run: its length and pose optimiser, the run's device."""
+    return TrainRun(iters=iters, learn_poses=poses.learn, pose_lr=poses.lr, learn_translation=poses.translation,
+                    pose_warmup=int(round(poses.warmup_frac * iters)), seed=run.seed, threads=run.threads,
                     device=run.device)
 
 
@@ -158,22 +176,23 @@ def free_space_term(lp, sfm_points: dict, radius: float, device):
 class Round:
     """One optimisation round over ``ids`` (global view ids) starting from poses ``w2c_all``."""
 
-    def __init__(self, cfg: RoundConfig, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *, iters: int,
-                 pose_lr: float, pose_warmup_frac: float, learn_poses: bool, carry: dict | None = None,
-                 pose_start_frac: float = 0.0, correspondence_weight: float = 0.0, pose_ids=None,
+    def __init__(self, cfg: RoundConfig, inputs: SceneInputs, ids, w2c_all: np.ndarray, s_tilde_all: np.ndarray, *,
+                 iters: int, poses: PoseLearning = PoseLearning(), carry: dict | None = None, pose_ids=None,
                  sfm_points: dict | None = None, image_size: int | None = None, kept_ids=None,
-                 kept_frac: float = 0.0, polish: Polish | None = None, learn_translation: bool = True):
-        """image_size: longest side the round trains at (None: ``train.image_size``; 0: the images' own).
-        kept_ids, kept_frac: the views (global ids) whose rays keep the coarsest ``kept_frac`` of the
-        field's bands from the round's start (the gate's progress starts there for them, at 0 for the
-        others); 1 = they see every band. polish: the poses-only polish after the training (None: none).
-        learn_translation: False learns rotations only (every camera centre stays at its start)."""
+                 kept_frac: float = 0.0, polish: Polish | None = None):
+        """poses: how the round learns them (default: held). pose_ids: the views (global ids) whose poses
+        learn (None: all of the round's). image_size: longest side the round trains at (None:
+        ``train.image_size``; 0: the images' own). kept_ids, kept_frac: the views (global ids) whose rays keep
+        the coarsest ``kept_frac`` of the field's bands from the round's start (the gate's progress starts there
+        for them, at 0 for the others); 1 = they see every band. polish: the poses-only polish after the
+        training (None: none)."""
+        learn_poses, correspondence_weight = poses.learn, poses.correspondence_weight
         self.ids = np.asarray(ids, int)
         self.iters = iters
         self.K_all = inputs.views.K  # [N,3,3]: saved with the poses, which belong to it
         self.distortion_all = inputs.distortion  # [N,4] or None: the lens distortion removed from the views
         self.full_K = self.K_all[self.ids]
-        run = train_run(cfg.run, iters, pose_lr, pose_warmup_frac, learn_poses, learn_translation)
+        run = train_run(cfg.run, iters, poses)
         gate_p = cfg.gate
         s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids])
         self.corr_p = cfg.correspondence
@@ -198,7 +217,7 @@ class Round:
             train_p = dataclasses.replace(train_p, image_size=int(image_size))
         # Poses stay frozen until the field has had `pose_start` iterations to fit them: a
         # correction driven by an unfitted field only moves good initial poses away.
-        self.pose_start = int(round(pose_start_frac * iters))
+        self.pose_start = int(round(poses.start_frac * iters))
         self.trainer = Trainer(
             subset_views(inputs.views, self.ids, w2c_all), cfg.field, cfg.render, cfg.loss, train_p, run=run,
             band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,

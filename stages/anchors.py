@@ -383,9 +383,7 @@ def run(ctx) -> None:
 
     s_tilde = inputs.schedule["s_tilde_rounds"][0]
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-    rnd = posefree.Round(cfg, inputs, anchors, w2c0, s_tilde, iters=p.iters, pose_lr=p.pose_lr,
-                         pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
-                         pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
+    rnd = posefree.Round(cfg, inputs, anchors, w2c0, s_tilde, iters=p.iters, poses=posefree.PoseLearning.of(p),
                          sfm_points=sfm_points)
     summary = rnd.run("anchors", ctx.checkpoint_dir / f"{artifacts.ANCHOR_ROUND}.pt", log=ctx.log, progress=ctx.progress)
     posefree.save_round(ctx.out / artifacts.ANCHOR_ROUND, rnd, placed, {

@@ -5,6 +5,7 @@ round is also checkpointed, so an interrupted run resumes at the round (and iter
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 from dataclasses import dataclass
@@ -126,8 +127,7 @@ def run(ctx) -> None:
                          r, len(moved), len(before), p.sfm_restart)
         # initial poses of the new views (depth PnP against the previous round's model, or the matches)
         if p.placement == "depth":
-            probe = posefree.Round(cfg, inputs, before, w2c, np.ones(len(w2c)), iters=1, pose_lr=0.0,
-                                   pose_warmup_frac=0.0, learn_poses=False, carry=carry)
+            probe = posefree.Round(cfg, inputs, before, w2c, np.ones(len(w2c)), iters=1, carry=carry)
             depth_at = posefree.depth_at_fn(probe)
         placed_poses = {int(v): w2c[v] for v in before}
         init = {}
@@ -162,15 +162,13 @@ def run(ctx) -> None:
         ids = np.flatnonzero(placed)
         last = r == n_rounds
         iters = p.final_iters if last and p.final_iters else p.iters
-        rnd = posefree.Round(cfg, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters,
-                             pose_lr=p.pose_lr, pose_warmup_frac=p.pose_warmup_frac, learn_poses=p.optimise_poses,
-                             carry=carry, pose_start_frac=p.pose_start_frac, correspondence_weight=p.correspondence_weight,
-                             pose_ids=None if p.refine_placed else new, sfm_points=sfm_points,
+        poses = dataclasses.replace(posefree.PoseLearning.of(p), translation=p.final_translation or not last)
+        rnd = posefree.Round(cfg, inputs, ids, w2c, inputs.schedule["s_tilde_rounds"][r], iters=iters, poses=poses,
+                             carry=carry, pose_ids=None if p.refine_placed else new, sfm_points=sfm_points,
                              image_size=p.final_image_size if last and p.final_image_size >= 0 else None,
                              kept_ids=np.setdiff1d(ids, new), kept_frac=p.regate_kept,
                              polish=posefree.Polish(p.polish_steps, p.polish_rays, p.polish_lr, p.polish_translation)
-                             if last or p.polish_rounds == "every" else None,
-                             learn_translation=p.final_translation or not last)
+                             if last or p.polish_rounds == "every" else None)
         summary = rnd.run(f"round {r}", ctx.checkpoint_dir / f"{artifacts.round_folder(r)}.pt", log=ctx.log, progress=ctx.progress)
         posefree.save_round(ctx.out / artifacts.round_folder(r), rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,

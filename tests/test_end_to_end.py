@@ -278,8 +278,7 @@ def test_a_round_gates_only_the_views_it_does_not_keep(tiny_run):
     s_tilde = np.ones(len(inputs.names))
     weights = {}
     for frac in (0.0, 1.0):
-        rnd = posefree.Round(cfg, inputs, ids, w2c, s_tilde, iters=100, pose_lr=0.0, pose_warmup_frac=0.0,
-                             learn_poses=False, kept_ids=kept, kept_frac=frac)
+        rnd = posefree.Round(cfg, inputs, ids, w2c, s_tilde, iters=100, kept_ids=kept, kept_frac=frac)
         weights[frac] = rnd.trainer.band_weight_fn(torch.arange(len(ids)), 0)  # [views of the round, L]
     is_kept = torch.as_tensor(np.isin(ids, kept))
     assert (weights[0.0][:, -1] < 1).all()  # the default: every view starts coarse
