@@ -111,12 +111,17 @@ class ObjectRegion:
         return cls(**d)
 
     def transformed(self, M: np.ndarray) -> "ObjectRegion":
-        """The region in the frame y = M x of a 4x4 similarity M without rotation (s I, t): the ball scaled
-        and moved, the plane's normal kept and its offset d' = s d - n.t."""
-        s, t = float(M[0, 0]), np.asarray(M[:3, 3], np.float64)
-        plane = None if self.plane is None else [*self.plane[:3], s * self.plane[3] - float(np.dot(self.plane[:3], t))]
-        return ObjectRegion((s * np.asarray(self.centre) + t).tolist(), s * self.radius, plane, self.n_points,
-                            self.source)
+        """The region in the frame y = M x = s R x + t of a 4x4 similarity M: the ball mapped, the plane's
+        normal turned (n' = R n) and its offset d' = s d - n'.t."""
+        from .cameras import sim3_from_matrix, transform_points
+
+        s, R, t = sim3_from_matrix(M)
+        plane = None
+        if self.plane is not None:
+            n = R @ np.asarray(self.plane[:3], np.float64)
+            plane = [*n.tolist(), s * self.plane[3] - float(n @ t)]
+        centre = transform_points(M, np.asarray(self.centre, np.float64)[None])[0]
+        return ObjectRegion(centre.tolist(), s * self.radius, plane, self.n_points, self.source)
 
     def contains(self, x: np.ndarray, plane_margin: float = 0.0) -> np.ndarray:
         """bool [P]: points x [P,3] inside the ball and above the support plane by ``plane_margin``."""
