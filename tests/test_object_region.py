@@ -269,37 +269,3 @@ def test_the_free_space_term_is_on_without_masks_only(on_a_floor, tmp_path):
     assert len(lines) > len(poses["object_points"]) >= 20
     gap = np.linalg.norm(lines[:, None, 0] - cameras.camera_centers(poses["w2c"][anchors])[None], axis=2).min(1)
     assert np.median(gap) < 1e-4  # most from the anchors themselves (a bridge view's are not anchors)
-
-
-def test_the_surface_frame_turns_onto_the_objects_principal_axes():
-    """surface.axes = principal: the object's points have a diagonal covariance in the field's frame, and the
-    frame is a similarity (a turn, not a reflection) that puts their robust box's half diagonal at the
-    anchors' gauge_radius, as the rounds' axes do."""
-    from types import SimpleNamespace
-
-    from stages import surface
-
-    K, w2c, sizes = _views()
-    rng = np.random.default_rng(3)
-    turn = cameras.rotvec_to_matrix(np.array([0.4, 0.9, -0.3]))[0]
-    points = (rng.normal(size=(3000, 3)) * [0.25, 0.12, 0.05]) @ turn.T + [0.05, -0.02, 0.03]  # a flat, turned blob
-    views = SimpleNamespace(K=K, masks=None, images=np.zeros((len(K), *sizes[0], 3), np.uint8))
-    result = {"track_points": points, "w2c": w2c}
-    anchors_p = SimpleNamespace(object_min_seen=0.5, gauge_radius=0.8, gauge_percentile=99.0, gauge_centre="box")
-    ids = np.arange(len(K))
-    obj = points[object_region.seen_fraction(points, K, w2c, sizes) >= 0.5]  # the frame's points: the common frustum
-    assert len(obj) > 0.9 * len(points)
-    for axes in ("rounds", "principal"):
-        G = surface.field_frame(result, views, ids, anchors_p, axes)
-        s, R, _ = cameras.sim3_from_matrix(G)
-        assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0
-        y = cameras.transform_points(G, obj)
-        lo, hi = np.percentile(y, [1, 99], axis=0)
-        assert 0.5 * np.linalg.norm(hi - lo) == pytest.approx(0.8, rel=1e-6)
-        cov = np.cov(y.T)
-        off = np.abs(cov - np.diag(np.diag(cov))).max()
-        if axes == "principal":
-            assert off < 1e-9 and np.all(np.diff(np.diag(cov)) < 0)  # the longest axis first
-        else:
-            assert np.allclose(R, np.eye(3)) and off > 1e-3
-
