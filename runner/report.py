@@ -491,7 +491,7 @@ def section_run(page: Page, systems: dict[str, Pointers]) -> None:
 
     page.add("## The run: camera and time per stage", "")
     for name, ptr in systems.items():
-        ev = ptr.file("evaluate", "evaluation.json")
+        ev = ptr.file("evaluate", artifacts.EVALUATION)
         intrinsics = io.load_json(ev).get("intrinsics") if ev else None
         page.add(f"### {name}", "", f"`{camera_line(intrinsics)}`" if intrinsics else "_camera: not evaluated yet._", "")
         rows = [(stage, ptr.store.manifest(stage)) for stage in load_stages() if ptr.get(stage) is not None]

@@ -141,6 +141,9 @@ def reference_poses(reference_dir, n: int, gauge_radius: float, gauge_centre: st
     from manifoldneus import cameras
 
     ref = artifacts.load_reference_poses(reference_dir)
+    if not ref["registered"].any():
+        raise ParamError("anchors.pose_init = reference: the pycolmap reference registered no view (photos without "
+                         "cameras skip it: add --set reference.when=always)")
     rec = pycolmap.Reconstruction(str(reference_dir / "sparse"))
     pts = np.array([p.xyz for p in rec.points3D.values()])
     if len(pts) < 3:

@@ -58,9 +58,9 @@ class Params:
                              "poses by 2.6e-3 between two runs)", lo=-1)
     seed: int = param(0, "Random seed of COLMAP's RANSAC and mapper", lo=0)
     min_num_matches: int = param(15, "Minimum verified matches of a pair used by the mapper", lo=1)
-    when: str = param("cameras", "cameras: only for an input with cameras of its own to score it against (or when the "
-                      "anchors start from it, anchors.pose_init = reference); a user's photos skip it. always: every "
-                      "input", choices=["cameras", "always"])
+    when: str = param("cameras", "cameras: only for an input with cameras of its own to score it against (a user's "
+                      "photos skip it); always: every input (what the anchors need to start from it, "
+                      "anchors.pose_init = reference, on photos)", choices=["cameras", "always"])
 
     def __post_init__(self):
         unknown = set(self.refine_intrinsics) - {"focal", "principal_point"}
@@ -69,7 +69,7 @@ class Params:
 
 
 UPSTREAM = ("ingest",)
-SECTIONS = ("reference", "anchors.pose_init")
+SECTIONS = ("reference",)
 OUTPUTS = (artifacts.POSES, "sparse")
 
 
@@ -208,7 +208,7 @@ def run(ctx) -> None:
     meta = artifacts.load_views_meta(src)
     names = list(meta["names"])
     arrays = artifacts.load_views_arrays(src, ["images", "K"])
-    if p.when == "cameras" and not meta.get("has_cameras", True) and ctx.section("anchors").pose_init != "reference":
+    if p.when == "cameras" and not meta.get("has_cameras", True):
         skip(ctx, names, arrays["K"])
         return
     files = [f"{Path(nm).stem if Path(nm).suffix else nm}.png" for nm in names]

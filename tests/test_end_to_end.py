@@ -367,6 +367,9 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     assert not io.load_arrays(reference / "poses.zarr", ["registered"])["registered"].any()
     st = pipeline.status(str(photos), overrides=[*TINY, "reference.when=always"], artifacts=artifacts)
     assert st["reference"][0] != "fresh" and st["anchors"][0] == "fresh"  # the method never read it
+    with pytest.raises(ParamError, match="reference.when=always"):  # the anchors cannot start from a skipped one
+        pipeline.run(str(photos), until="anchors", overrides=[*TINY, "anchors.pose_init=reference"],
+                     artifacts=artifacts)
 
 
 def test_the_summary_of_a_run_too_small_to_score_still_ends_well(tiny_run, monkeypatch):

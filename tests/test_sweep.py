@@ -50,7 +50,7 @@ def test_a3_alpha_reuses_the_front_end(dirs, capsys):
     (_, second), _ = run(dirs, "A3", ["0.65", "0.35"], capsys)
     assert all(second["stages"][s] == "reused" for s in NOT_REACHED_BY_ALPHA)
     assert {s for s, how in second["stages"].items() if how == "computed"} == {
-        "schedule", "anchors", "successors", "mesh", "evaluate", "export"}
+        "schedule", "anchors", "successors", "surface", "mesh", "evaluate", "export"}
     assert second["cost_seconds"] > second["wall_seconds"]  # the cache saved the front-end's time
 
 
