@@ -57,7 +57,8 @@ def _parser() -> argparse.ArgumentParser:
                              + ("; repeat it to run several scenes (default synthetic)" if scenes else ""))
         sp.add_argument("--data-root", type=Path, default=None, help="data root (default $MANIFOLDNEUS_DATA or ../shared/data)")
         sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS,
-                        help="the artifacts folder: every stage's versions, per scene (default ./artifacts)")
+                        help="the artifacts folder: every stage's versions, per scene (default $MANIFOLDNEUS_ARTIFACTS, "
+                             "else the checkout's artifacts/)")
         if params:
             sp.add_argument("--params", type=Path, default=DEFAULT_PARAMS,
                             help="the parameter file (default ./params.yaml)")
@@ -101,7 +102,7 @@ def _parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("gc", help="delete artifact versions no longer current (inside the artifacts folder only)")
     sp.add_argument("--scene", default=None, help="only this scene, resolved as `run` resolves it (default: every scene)")
     sp.add_argument("--data-root", type=Path, default=None, help="data root (default $MANIFOLDNEUS_DATA or ../shared/data)")
-    sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS, help="the artifacts folder (default ./artifacts)")
+    sp.add_argument("--artifacts", type=Path, default=DEFAULT_ARTIFACTS, help="the artifacts folder (default $MANIFOLDNEUS_ARTIFACTS, else the checkout's artifacts/)")
     sp.add_argument("--dry-run", action="store_true", help="list what would be removed, remove nothing")
     sp.add_argument("--drop-interrupted", action="store_true",
                     help="also give up what killed runs left to resume from (their records in <scene>/.runs)")

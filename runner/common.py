@@ -2,10 +2,12 @@
 version, and the runner's user-facing errors."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent  # the project: params.yaml, stages/, manifoldneus/
-DEFAULT_ARTIFACTS = ROOT / "artifacts"
+# where runs keep their versions unless --artifacts says: set once for a user's runs, from any folder
+DEFAULT_ARTIFACTS = Path(os.environ.get("MANIFOLDNEUS_ARTIFACTS") or ROOT / "artifacts")
 DEFAULT_PARAMS = ROOT / "params.yaml"
 MANIFEST = "manifest.json"
 LOG = "log.txt"

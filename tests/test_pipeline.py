@@ -930,6 +930,26 @@ def test_the_installed_command_is_the_pipelines_command_line(tmp_path):
     assert usage.startswith("usage: manifoldneus ")
 
 
+def test_the_artifacts_root_is_set_once_by_the_environment(tmp_path):
+    """MANIFOLDNEUS_ARTIFACTS names the artifacts folder for every command run from any folder; --artifacts
+    still wins."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "MANIFOLDNEUS_ARTIFACTS": str(tmp_path / "runs")}
+    cmd = [sys.executable, str(root / "pipeline.py"), "run", "--scene", "synthetic", "--until", "ingest",
+           "--set", "ingest.synthetic_views=6", "--set", "ingest.synthetic_resolution=32"]
+    out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "runs" / "synthetic" / "ingest" / "current").is_symlink()
+    out = subprocess.run([*cmd, "--artifacts", str(tmp_path / "other")], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0 and (tmp_path / "other" / "synthetic" / "ingest" / "current").is_symlink()
+
+
 def test_torch_is_held_at_the_tested_build_only_by_make_setup():
     """pyproject.toml admits a user's own torch (a CUDA build of another version); constraints.txt, which make
     setup installs with, holds the venv at the tested build, and that is the torch installed here."""
