@@ -102,15 +102,14 @@ class Surface:
 def load_surface_field(surface_dir: Path, ingest_dir: Path, device: str = "cpu") -> Surface:
     """The field of ``surface/<version>`` with the views of ``ingest/<version>`` posed by its round."""
     from manifoldneus import artifacts
+    from manifoldneus.posefree import subset_views
 
     result = artifacts.load_surface(surface_dir)
     views = artifacts.load_views(ingest_dir, result["w2c"], result["K"], result.get("distortion"))
     G = result[artifacts.FIELD_FROM_MODEL]
     ids = np.flatnonzero(result["optimised"].astype(bool))
-    w2c = cameras.transform_w2c(result["w2c"], *cameras.sim3_from_matrix(G))[ids]  # [n,4,4]
-    pick = (lambda a: None if a is None else a[ids])
-    sub = Views(views.images[ids], views.K[ids], w2c, pick(views.masks), pick(views.mono_depth),
-                pick(views.mono_normal), [views.names[i] for i in ids])
+    w2c = cameras.transform_w2c(result["w2c"], *cameras.sim3_from_matrix(G))  # [N,4,4] in the field's frame
+    sub = subset_views(views, ids, w2c)
     return Surface(trainer_from_checkpoint(Path(surface_dir) / artifacts.MODEL, sub, device), G, result, views, ids)
 
 

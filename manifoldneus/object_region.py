@@ -41,21 +41,6 @@ def seen_fraction(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, sizes: np.
     return inside.mean(0)
 
 
-def in_mask_fraction(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, masks: np.ndarray) -> np.ndarray:
-    """Fraction [P] of the views (K [N,3,3], w2c [N,4,4], masks [N,H,W] bool) whose frame holds each of the
-    points [P,3] that see it inside their mask (0 where no view's frame holds it)."""
-    Xc = np.einsum("nij,pj->npi", w2c[:, :3, :3], points) + w2c[:, None, :3, 3]  # [N,P,3]
-    uvw = np.einsum("nij,npj->npi", K, Xc)  # [N,P,3]
-    z = uvw[..., 2]
-    uv = uvw[..., :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[..., None]
-    H, W = masks.shape[1:3]
-    inside = (Xc[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < W) & (uv[..., 1] >= 0) & (uv[..., 1] < H)
-    col = np.clip(np.floor(uv[..., 0]), 0, W - 1).astype(int)  # [N,P]
-    row = np.clip(np.floor(uv[..., 1]), 0, H - 1).astype(int)
-    hit = masks[np.arange(len(masks))[:, None], row, col] & inside  # [N,P]
-    return hit.sum(0) / np.maximum(inside.sum(0), 1)
-
-
 def support_plane(points: np.ndarray, w2c: np.ndarray, tol: float, min_share: float = 0.1, min_above: float = 0.95,
                   iterations: int = 500, seed: int = 0) -> tuple[np.ndarray, float] | None:
     """The plane n.x + d = 0 (n [3] unit, pointing to the cameras) holding the most points [P,3] within

@@ -234,11 +234,7 @@ class Round:
         if lp.w_free_space > 0 and inputs.views.masks is None and sfm_points is not None:
             self.trainer.free_space = free_space_term(lp, sfm_points, self.trainer.rp.radius, self.trainer.device)
         if carry is not None:  # the field learned so far; poses restart at zero correction
-            t = self.trainer
-            t.field.load_state_dict(carry["field"])
-            t.background.load_state_dict(carry["background"])
-            if t.cache is not None and carry.get("cache") is not None:
-                t.cache.load_state_dict(carry["cache"])
+            load_carry(self.trainer, carry)
         self.w2c_init = np.array(w2c_all)
         self.start_poses = self.trainer.w2c_init.clone()  # [n,3,4] what a view's update is tested against
         self.polish = polish
@@ -337,6 +333,15 @@ class Round:
     def carry(self) -> dict:
         s = self.trainer.state_dict()
         return {k: s[k] for k in ("field", "background", "cache")}
+
+
+def load_carry(trainer: Trainer, carry: dict) -> None:
+    """A field carried from another trainer (:meth:`Round.carry`, or a round's ``model.pt``): field,
+    background and, where both have one, the SDF cache."""
+    trainer.field.load_state_dict(carry["field"])
+    trainer.background.load_state_dict(carry["background"])
+    if trainer.cache is not None and carry.get("cache") is not None:
+        trainer.cache.load_state_dict(carry["cache"])
 
 
 def depth_at_fn(rnd: Round):

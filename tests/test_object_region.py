@@ -54,18 +54,6 @@ def test_the_common_frustum_keeps_the_object_and_drops_the_background():
     assert region.contains(obj).mean() > 0.99 and region.contains(wall).mean() < 0.1
 
 
-def test_the_points_inside_the_masks_are_the_objects():
-    """The surface stage's gauge keeps the points that most views holding them see inside their masks."""
-    rng = np.random.default_rng(0)
-    K, w2c, sizes = _views()
-    obj = _observed_surface(2500, seed=1)
-    wall = np.stack([rng.uniform(-6, 6, 1000), np.full(1000, 4.0), rng.uniform(-3, 5, 1000)], 1)
-    masks = meshing.point_silhouettes(obj, K, w2c, tuple(sizes[0]))  # [N,H,W] the object's silhouettes
-    frac = object_region.in_mask_fraction(np.concatenate([obj, wall]), K, w2c, masks)
-    assert (frac[:len(obj)] > 0.5).mean() > 0.99 and (frac[len(obj):] > 0.5).mean() < 0.2  # what hides behind it
-    assert object_region.in_mask_fraction(np.array([[0.0, 0.0, 100.0]]), K, w2c, masks)[0] == 0  # no view holds it
-
-
 def test_a_region_moved_into_another_frame_holds_the_same_points():
     rng = np.random.default_rng(1)
     K, w2c, sizes = _views()
