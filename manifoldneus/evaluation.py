@@ -21,7 +21,8 @@ from manifoldneus.train import Trainer, TrainParams, TrainRun, Views
 class MeshParams:
     """Section `meshing`: SDF -> triangle mesh."""
 
-    resolution: int = param(192, "Marching-cubes grid resolution over the unit sphere's cube", lo=16, hi=1024)
+    resolution: int = param(512, "Marching-cubes grid resolution over the unit sphere's cube (NeuS's; the narrow "
+                            "band evaluates the field near the surface only)", lo=16, hi=1024)
     coarse_step: int = param(8, "Evaluate the field only near its surface: a grid every coarse_step nodes, then the "
                              "cells that may hold surface split level by level (a power of two; 0 = every grid "
                              "node: slower, the same mesh)", lo=0, hi=64)

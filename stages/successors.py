@@ -73,10 +73,12 @@ SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "correspon
 OUTPUTS = (artifacts.FINAL_ROUND,)
 
 
-def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: float, seed: int = 0) -> dict:
+def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: float,
+                      seed: int = 0) -> tuple[dict, np.ndarray | None]:
     """Poses of placed + new views from an incremental SfM over them (verified matches only),
     brought into the model's frame by the Sim3 that maps its placed views onto their optimised
-    poses; views the SfM did not register are left out."""
+    poses; views the SfM did not register are left out. Returns the poses by view and that Sim3 as a
+    4x4 (the SfM's world -> the model's; None where fewer than 3 placed views registered)."""
     from manifoldneus import cameras
 
     ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
@@ -85,10 +87,10 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
     row = {v: k for k, v in enumerate(ids)}
     ok = [v for v in placed_ids if res.placed[row[v]]]
     if len(ok) < 3:
-        return {}
+        return {}, None
     s, R, t = cameras.umeyama_sim3(cameras.camera_centers(res.w2c[[row[v] for v in ok]]), cameras.camera_centers(w2c[ok]))
     moved = cameras.transform_w2c(res.w2c, s, R, t)
-    return {v: moved[row[v]] for v in ids if res.placed[row[v]]}
+    return {v: moved[row[v]] for v in ids if res.placed[row[v]]}, cameras.sim3_matrix(s, R, t)
 
 
 def run(ctx) -> None:
@@ -114,12 +116,12 @@ def run(ctx) -> None:
     for r in range(1, n_rounds + 1):
         new = [*left_out, *(int(v) for v in np.flatnonzero((rounds == r) & inputs.train_mask))]
         left_out = []
-        from_matches = None
+        from_matches, round_from_sfm = None, None
         before = np.flatnonzero(placed)  # the views whose poses the round inherits: the SfM's Sim3 is fitted on them
         restart = p.sfm_restart == "every" or (p.sfm_restart == "last" and r == n_rounds)
         if restart and len(before):  # first, so that depth PnP places the new views against the restarted poses
             with io.native_output_to(ctx.log_path):
-                from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px, seed)
+                from_matches, round_from_sfm = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px, seed)
             moved = [int(v) for v in before if v in from_matches]
             for v in moved:
                 w2c[v] = from_matches[v]
@@ -140,7 +142,8 @@ def run(ctx) -> None:
             if p.placement == "matches" or info["method"] != "pnp":
                 if from_matches is None:
                     with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
-                        from_matches = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px, seed)
+                        from_matches, round_from_sfm = matches_placement(inputs, before, new, w2c,
+                                                                         p.pnp_reproj_px, seed)
                 if from_matches.get(v) is not None:
                     pose, info = from_matches[v], {"method": "matches", "after": info["method"] if p.placement == "depth" else None}
             init[inputs.names[v]] = info
@@ -172,7 +175,8 @@ def run(ctx) -> None:
         summary = rnd.run(f"round {r}", ctx.checkpoint_dir / f"{artifacts.round_folder(r)}.pt", log=ctx.log, progress=ctx.progress)
         posefree.save_round(ctx.out / artifacts.round_folder(r), rnd, placed.copy(), {
             "round": r, "views": [int(v) for v in ids], "new_views": new, "init": init, "train": summary,
-            "history": rnd.trainer.history})
+            "history": rnd.trainer.history,
+            **({} if round_from_sfm is None else {"round_from_sfm": round_from_sfm.tolist()})})
         w2c = rnd.poses_all()
         carry = rnd.carry()
         methods = [i["method"] for i in init.values()]

@@ -35,6 +35,10 @@ class Params:
     frame: str = param("views", "The field's normalisation: views (the object's SfM points of every posed view, "
                        "scaled and centred as the anchors' gauge does with theirs) or rounds (the anchors' gauge, "
                        "fitted to the anchors' points only)", choices=["views", "rounds"])
+    axes: str = param("sfm", "The axes of the views' frame (its grid box is axis-aligned): sfm (the world axes of "
+                      "the matches' SfM the last round placed its views from, sfm-all's own: the same box as NeuS "
+                      "on sfm-all's poses; the rounds' where that round kept none) or rounds (the anchors' SfM's)",
+                      choices=["sfm", "rounds"])
 
     def __post_init__(self):
         if self.start == "rounds" and self.frame != "rounds":
@@ -47,17 +51,21 @@ SECTIONS = ("surface", "train", "field", "render", "loss", "run", "anchors.gauge
 OUTPUTS = (artifacts.POSES, artifacts.MODEL, artifacts.ROUND_META)
 
 
-def field_frame(result: dict, views, ids: np.ndarray, anchors_p) -> np.ndarray:
-    """4x4 similarity y = s (x - c) from the rounds' frame to the field's: the anchors' gauge
+def field_frame(result: dict, views, ids: np.ndarray, anchors_p, axes: str = "sfm") -> np.ndarray:
+    """4x4 similarity from the rounds' frame to the field's: the anchors' gauge y = s (x - c)
     (:func:`manifoldneus.cameras.gauge_from_points`) fitted to the last round's tracks over every posed
     view, as the anchors pick theirs: with masks those most of whose observations fall inside the masks
     (those most views holding them see inside their masks also keep what lies behind the object, e.g. the
     table: scan65's object shrank 0.77x), without masks those in the views' common frustum; identity where
-    the round kept too few tracks. The axes stay the rounds': turned
-    onto the points' principal axes (the tightest grid box), scan65_idr's surface lost 0.3 dB (seed 0)."""
+    the round kept too few tracks. The gauge's box is axis-aligned, so its axes shape the grid:
+    ``axes = sfm`` fits it in the world frame of the SfM the last round's views came from (the round's
+    ``round_from_sfm``; sfm-all's frame when the last round restarts from it), ``rounds`` in the rounds'.
+    Turned onto the points' principal axes instead (the tightest box), scan65_idr's surface lost 0.3 dB."""
     points = result.get("track_points")
     if points is None or len(points) < 20:
         return np.eye(4)
+    round_from_sfm = result["info"].get("round_from_sfm") if axes == "sfm" else None
+    to_axes = np.eye(4) if round_from_sfm is None else np.linalg.inv(np.asarray(round_from_sfm, np.float64))
     K, w2c = views.K[ids], result["w2c"][ids]
     if views.masks is not None:
         view, point, uv = result["track_obs_view"], result["track_obs_point"], result["track_obs_uv"]
@@ -67,9 +75,9 @@ def field_frame(result: dict, views, ids: np.ndarray, anchors_p) -> np.ndarray:
     else:
         sizes = np.tile(np.asarray(views.images.shape[1:3]), (len(ids), 1))
         obj = object_region.seen_fraction(points, K, w2c, sizes) >= anchors_p.object_min_seen
-    s, c = cameras.gauge_from_points(points[obj] if obj.sum() >= 20 else points, anchors_p.gauge_radius,
-                                     anchors_p.gauge_percentile, anchors_p.gauge_centre)
-    return cameras.sim3_matrix(s, np.eye(3), -s * c)
+    fitted = cameras.transform_points(to_axes, points[obj] if obj.sum() >= 20 else points)  # [P,3]
+    s, c = cameras.gauge_from_points(fitted, anchors_p.gauge_radius, anchors_p.gauge_percentile, anchors_p.gauge_centre)
+    return cameras.sim3_matrix(s, np.eye(3), -s * c) @ to_axes
 
 
 def run(ctx) -> None:
@@ -84,9 +92,10 @@ def run(ctx) -> None:
     result = artifacts.load_round(final)
     views = artifacts.load_views(ctx.input("ingest"), None, result["K"], result.get("distortion"))
     ids = np.flatnonzero(result["optimised"].astype(bool))
-    G = np.eye(4) if p.frame == "rounds" else field_frame(result, views, ids, ctx.section("anchors"))
+    G = np.eye(4) if p.frame == "rounds" else field_frame(result, views, ids, ctx.section("anchors"), p.axes)
     w2c = cameras.transform_w2c(result["w2c"], *cameras.sim3_from_matrix(G))  # [N,4,4] in the field's frame
-    ctx.log.info("the field's frame: %s (scale %.4g of the rounds')", p.frame, G[0, 0])
+    ctx.log.info("the field's frame: %s, %s axes (scale %.4g of the rounds')", p.frame, p.axes,
+                 cameras.sim3_from_matrix(G)[0])
     run_p = ctx.section("run")
     trun = TrainRun(iters=p.iters, seed=run_p.seed, threads=run_p.threads, device=run_p.device)
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
