@@ -13,6 +13,7 @@ from manifoldneus import io
 from manifoldneus.views import Views
 
 VIEWS = "views.zarr"  # ingest's arrays: images, K, masks, priors
+INPUT_CAMERAS = "input_cameras.zarr"  # ingest's poses a COLMAP model gave (w2c, its points): anchors.pose_init = input
 VIEWS_META = "views.json"  # ingest's names, layout, intrinsics_source, has_cameras, ...
 GT_META = "gt.json"  # ground_truth's has_poses, has_surface, units
 FEATURES = "features.zarr"
@@ -43,6 +44,13 @@ REFERENCE_CAMERAS_PLOT = "reference_cameras.png"  # evaluate_poses' plot of pyco
 def load_views_meta(ingest_dir: Path) -> dict:
     """``ingest``'s ``views.json``: ``names``, ``layout``, ``intrinsics_source``, ``has_cameras``, ..."""
     return io.load_json(Path(ingest_dir) / VIEWS_META)
+
+
+def load_input_cameras(ingest_dir: Path) -> dict | None:
+    """``ingest``'s ``input_cameras.zarr``: the poses the input's COLMAP model gave, ``w2c`` float64 [N,4,4]
+    in the model's world frame, and its ``points`` [P,3] (possibly none); None for a scene without them."""
+    path = Path(ingest_dir) / INPUT_CAMERAS
+    return io.load_arrays(path) if path.exists() else None
 
 
 def load_views_arrays(ingest_dir: Path, names: list[str] | None = None) -> dict:

@@ -267,7 +267,7 @@ def undistorted(views: dict, distortion: np.ndarray) -> dict:
 
 
 # Arrays and lists with one entry per view, in view order: what a view subset must slice.
-PER_VIEW_KEYS = ("images", "K", "masks", "mono_depth", "mono_normal", "names", "w2c", "files")
+PER_VIEW_KEYS = ("images", "K", "masks", "mono_depth", "mono_normal", "names", "w2c", "files", "input_w2c")
 
 
 def every_nth_view(data: dict, stride: int) -> dict:
@@ -477,7 +477,11 @@ def _colmap_views(path: Path, p) -> dict:
         if d is not None:
             pixels[i] = cameras.undistort_image(pixels[i], K[i], d)
             given[i] = None
-    return {"images": np.stack(pixels), "K": K, "names": names, "files": given}
+    # the model's poses and points: an input a run may start from (anchors.pose_init = input)
+    w2c = np.stack([cameras.to_4x4(np.asarray(im.cam_from_world().matrix())) for im in images])  # [N,4,4]
+    points = np.array([pt.xyz for pt in rec.points3D.values()]).reshape(-1, 3)  # [P,3]
+    return {"images": np.stack(pixels), "K": K, "names": names, "files": given, "input_w2c": w2c,
+            "input_points": points}
 
 
 def _refuse_mixed_sizes(images: list, labels: list[str], folder: Path, what: str = "image(s)") -> None:

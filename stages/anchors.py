@@ -5,7 +5,9 @@ Pose initialisation (``anchors.pose_init``):
   views that bridge them) handed to COLMAP's incremental mapper and bundle adjustment, then the
   unit-sphere gauge (:func:`manifoldneus.pose_init.init_from_matches`); COLMAP's log goes to log.txt;
 - ``identity``: every anchor at one canonical pose looking at the origin (the paper's wording);
-- ``reference``: the pycolmap reference poses (the `neus-colmap` preset), gauged the same way.
+- ``reference``: the pycolmap reference poses (the `neus-colmap` preset), gauged the same way;
+- ``input``: the poses of the scene's own COLMAP model (``sparse/0`` beside ``images/``), gauged the same way,
+  with its cameras' intrinsics (ingest's K); the other views join as with any start.
 Intrinsics that are a guess or an EXIF prior (``anchors.intrinsics``) are first self-calibrated: one
 shared camera's focal length, principal point and radial lens distortion refined by COLMAP on every
 trainable view's matches (:func:`self_calibrate`; the principal point and the distortion only where a
@@ -33,8 +35,9 @@ from manifoldneus.config import ParamError, param
 class Params:
     """Section `anchors` of params.yaml."""
 
-    pose_init: str = param("matches", "Initial anchor poses: matches | identity | reference (pycolmap)",
-                           choices=["matches", "identity", "reference"])
+    pose_init: str = param("matches", "Initial anchor poses: matches (SfM on the front-end's matches) | identity | "
+                           "reference (pycolmap's SfM) | input (the scene's own COLMAP model)",
+                           choices=["matches", "identity", "reference", "input"])
     optimise_poses: bool = param(True, "Learn per-view pose corrections (False: keep the initial poses)")
     iters: int = param(1500, "Iterations of the anchor stage", lo=1)
     pose_lr: float = param(8e-3, "Peak AdamW lr of the anchors' pose corrections (supplement: 8e-3)", lo=0.0)
@@ -134,7 +137,17 @@ class InitEnv:
     seed: int
 
 
-def reference_poses(reference_dir, n: int, gauge_radius: float, gauge_centre: str) -> tuple[np.ndarray, np.ndarray]:
+def gauged(w2c: np.ndarray, points: np.ndarray, p: Params) -> np.ndarray:
+    """Poses w2c [N,4,4] in the unit-sphere gauge of their SfM's points [P,3] (the camera centres where
+    there are fewer than 3)."""
+    from manifoldneus import cameras
+
+    pts = points if len(points) >= 3 else cameras.camera_centers(w2c)
+    s, centre = cameras.gauge_from_points(pts, p.gauge_radius, centre=p.gauge_centre)
+    return cameras.transform_w2c(w2c, s, np.eye(3), -s * centre)
+
+
+def reference_poses(reference_dir, p: Params) -> tuple[np.ndarray, np.ndarray]:
     """pycolmap's poses in the unit-sphere gauge of its own points; (w2c [N,4,4], registered [N])."""
     import pycolmap
 
@@ -145,15 +158,26 @@ def reference_poses(reference_dir, n: int, gauge_radius: float, gauge_centre: st
         raise ParamError("anchors.pose_init = reference: the pycolmap reference registered no view (photos without "
                          "cameras skip it: add --set reference.when=always)")
     rec = pycolmap.Reconstruction(str(reference_dir / "sparse"))
-    pts = np.array([p.xyz for p in rec.points3D.values()])
+    pts = np.array([pt.xyz for pt in rec.points3D.values()]).reshape(-1, 3)  # [P,3]
+    registered = ref["registered"].astype(bool)
     if len(pts) < 3:
-        pts = cameras.camera_centers(ref["w2c"][ref["registered"]])
-    s, centre = cameras.gauge_from_points(pts, gauge_radius, centre=gauge_centre)
-    return cameras.transform_w2c(ref["w2c"], s, np.eye(3), -s * centre), ref["registered"].astype(bool)
+        pts = cameras.camera_centers(ref["w2c"][registered])
+    return gauged(ref["w2c"], pts, p), registered
 
 
-def initial_poses(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int], p: Params, reference_dir: Path | None
-                  ) -> tuple[np.ndarray, posefree.SceneInputs, dict, dict]:
+def input_poses(ingest_dir: Path, p: Params) -> np.ndarray:
+    """The poses of the scene's own COLMAP model (ingest's ``input_cameras.zarr``) in the unit-sphere gauge
+    of its points; w2c [N,4,4]."""
+    given = artifacts.load_input_cameras(ingest_dir)
+    if given is None:
+        raise ParamError("anchors.pose_init = input starts from the poses of the scene's own COLMAP model; this "
+                         "scene has none (a COLMAP model is a folder with sparse/0/ beside images/): use "
+                         "anchors.pose_init = matches")
+    return gauged(given["w2c"], given["points"], p)
+
+
+def initial_poses(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int], p: Params, reference_dir: Path | None,
+                  ingest_dir: Path) -> tuple[np.ndarray, posefree.SceneInputs, dict, dict]:
     """(w2c [N,4,4] of the anchors (identity elsewhere), the inputs with the K and lens distortion the
     poses belong to (:func:`manifoldneus.posefree.with_intrinsics`), what was done,
     the SfM points in the gauge frame: ``object_points`` [P,3] (those in the foreground or the common
@@ -166,8 +190,11 @@ def initial_poses(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int]
     if p.pose_init == "identity":
         w2c[anchors] = pose_init.identity_init(len(anchors), p.identity_distance)
         return w2c, inputs, {"method": "identity"}, no_points
+    if p.pose_init == "input":  # the model's own cameras: ingest's K, held as the model has them
+        w2c[anchors] = input_poses(ingest_dir, p)[anchors]
+        return w2c, inputs, {"method": "input"}, no_points
     if p.pose_init == "reference":
-        ref, registered = reference_poses(reference_dir, n, p.gauge_radius, p.gauge_centre)
+        ref, registered = reference_poses(reference_dir, p)
         if registered.any():  # pycolmap's intrinsics (refined when it refined them)
             ids = np.flatnonzero(registered)
             ref_K = artifacts.load_reference_poses(reference_dir, ["K"])["K"]
@@ -371,7 +398,8 @@ def run(ctx) -> None:
     n = len(inputs.names)
     env = InitEnv(ctx.log, ctx.log_path, ctx.section("run").seed)
     # every round uses the K and lens distortion the initial poses belong to
-    w2c0, inputs, init_info, sfm_points = initial_poses(env, inputs, anchors, p, ctx.input("reference") if p.pose_init == "reference" else None)
+    reference_dir = ctx.input("reference") if p.pose_init == "reference" else None
+    w2c0, inputs, init_info, sfm_points = initial_poses(env, inputs, anchors, p, reference_dir, ctx.input("ingest"))
     if max(p.perturb_rot_deg, default=0.0) > 0 or p.perturb_centre_frac > 0:
         w2c0[anchors] = perturbed(w2c0[anchors], p, ctx.section("run").seed)
         init_info["perturbed"] = {"rot_deg": list(p.perturb_rot_deg), "centre_frac": p.perturb_centre_frac}

@@ -86,6 +86,7 @@ def run(ctx) -> None:
     layout = views.pop("layout")
     intrinsics_source = views.pop("intrinsics_source")
     files = views.pop("files", None)  # the input's own image file of each view, where its pixels are the view's
+    given = {"w2c": views.pop("input_w2c"), "points": views.pop("input_points")} if "input_w2c" in views else None
     n, h, w = views["images"].shape[:3]
     if n < MIN_VIEWS:
         raise scenes.SceneError(f"{ctx.scene_ref.path or ctx.scene}: {n} view(s); pose-free reconstruction needs at "
@@ -93,11 +94,13 @@ def run(ctx) -> None:
     ctx.log.info("read %d views of %dx%d (%s layout): %s", n, w, h, layout,
                  ", ".join(k for k in ("masks", "mono_depth", "mono_normal") if k in views) or "no masks or priors")
     io.save_arrays(ctx.out / artifacts.VIEWS, views)
+    if given is not None:  # a COLMAP model's poses: kept apart from the views, read only where a run starts from them
+        io.save_arrays(ctx.out / artifacts.INPUT_CAMERAS, given, chunk_first=False)
     io.save_json(ctx.out / artifacts.VIEWS_META, {
         "names": names, "height": h, "width": w, "layout": layout,
         "has_masks": "masks" in views, "has_mono_depth": "mono_depth" in views,
         "has_mono_normal": "mono_normal" in views, "intrinsics_source": intrinsics_source,
-        "has_cameras": scenes.layout_has_cameras(layout), "undistorted_with": list(p.distortion),
+        "has_cameras": scenes.layout_has_cameras(layout), "has_input_poses": given is not None, "undistorted_with": list(p.distortion),
         "source": str(ctx.scene_ref.path) if ctx.scene_ref.path else ctx.scene_ref.name,
         "files": files,
     })

@@ -407,3 +407,34 @@ def test_the_camera_line_names_a_lens_distortion_found():
                                           "(removed from the images)")
     intr["final"]["distortion"] = [0.0, 0.0, 0.0, 0.0]  # none found: nothing to say
     assert "distortion" not in pipeline.camera_line(intr)
+
+
+def test_a_colmap_models_poses_seed_the_anchors(tmp_path):
+    """The synthetic scene handed over as a COLMAP model whose poses are off the truth by a few degrees:
+    `anchors.pose_init = input` starts every anchor at the model's pose (its rotation to the bit: the gauge
+    only scales and shifts), not at the truth nor at an SfM of its own; a scene without a model says so."""
+    from manifoldneus import export, synthetic
+
+    scene = synthetic.make_scene(seed=0, n_views=20, resolution=128)
+    rng = np.random.default_rng(0)
+    turn = cameras.rotvec_to_matrix(rng.normal(size=(len(scene.w2c), 3)) * np.radians(2.0))  # [N,3,3] ~3 deg each
+    model = scene.w2c.copy()  # [N,4,4] the model's world-to-camera poses: each camera turned
+    model[:, :3, :] = np.einsum("nij,njk->nik", turn, model[:, :3, :])
+    folder = tmp_path / "model"
+    (folder / "images").mkdir(parents=True)
+    for i, name in enumerate(scene.names):
+        io.save_png(folder / "images" / export.image_filename(name), scene.images[i])
+    export.write_colmap_text(folder / "sparse" / "0", scene.names, scene.K, model, 128, 128)
+    artifacts = tmp_path / "artifacts"
+    report = pipeline.run(str(folder), until="anchors", artifacts=artifacts,
+                          overrides=TINY + ["anchors.pose_init=input"])
+    store = pipeline.Store(artifacts, pipeline.resolve_scene(str(folder)).name)
+    anchors_dir = store.version_dir("anchors", report.fingerprints["anchors"])
+    assert io.load_json(anchors_dir / "round_0" / "round.json")["init"]["method"] == "input"
+    start = io.load_arrays(anchors_dir / "initial_poses.zarr")
+    ids = np.flatnonzero(start["placed"])
+    assert len(ids) >= 3
+    assert np.allclose(start["w2c"][ids, :3, :3], model[ids, :3, :3], atol=1e-9)
+    assert np.abs(start["w2c"][ids, :3, :3] - scene.w2c[ids, :3, :3]).max() > 1e-3
+    with pytest.raises(ParamError, match="sparse/0"):
+        pipeline.run("synthetic", until="anchors", artifacts=artifacts, overrides=TINY + ["anchors.pose_init=input"])
