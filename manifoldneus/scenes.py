@@ -491,7 +491,20 @@ def _refuse_mixed_sizes(images: list, labels: list[str], folder: Path, what: str
         common = max(set(shapes), key=shapes.count)
         odd = [f"{label} ({w}x{h})" for label, (h, w) in zip(labels, shapes) if (h, w) != common]
         raise SceneError(f"{folder}: {len(odd)} {what} differ in size from the others' {common[1]}x{common[0]}: "
-                         f"{', '.join(odd[:5])}{' ...' if len(odd) > 5 else ''}; resize them to one size or remove them")
+                         f"{', '.join(odd[:5])}{' ...' if len(odd) > 5 else ''}; resize them to one size (a photo "
+                         f"stored turned by 90 deg is taken as it is) or remove them")
+
+
+def _one_orientation(images: list, labels: list[str], folder: Path) -> tuple[list, list[int]]:
+    """Photos stored portrait among landscape ones (or the reverse) turned by 90 deg clockwise to the most
+    common size: the same camera held the other way, so they share its intrinsics and their poses absorb the
+    turn. Returns the images and the indices of those turned; any other size is refused."""
+    shapes = [im.shape[:2] for im in images]
+    common = max(set(shapes), key=shapes.count)
+    turned = [i for i, s in enumerate(shapes) if s != common and s == common[::-1]]
+    images = [np.ascontiguousarray(np.rot90(im, -1)) if i in turned else im for i, im in enumerate(images)]
+    _refuse_mixed_sizes(images, labels, folder)
+    return images, turned
 
 
 def _plain_views(path: Path, p) -> dict:
@@ -499,13 +512,14 @@ def _plain_views(path: Path, p) -> dict:
     files = _list_images(folder)
     if not files:
         raise SceneError(f"{folder}: no images ({', '.join(IMAGE_EXTENSIONS[:4])}, ...)")
-    images = [io.read_image(f) for f in files]
-    _refuse_mixed_sizes(images, [f.name for f in files], folder)
+    images, turned = _one_orientation([io.read_image(f) for f in files], [f.name for f in files], folder)
     h, w = images[0].shape[:2]
-    fx, fy, cx, cy, source = _estimate_intrinsics(files[0], w, h)  # ingest.intrinsics, when given, replaces it
+    upright = min(set(range(len(files))) - set(turned))  # its EXIF focal is in pixels of the common size
+    fx, fy, cx, cy, source = _estimate_intrinsics(files[upright], w, h)  # ingest.intrinsics, when given, replaces it
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
     return {"images": np.stack(images), "K": np.repeat(K[None], len(files), 0), "names": [f.stem for f in files],
-            "files": [str(f) for f in files], "intrinsics_source": source}
+            "files": [None if i in turned else str(f) for i, f in enumerate(files)], "intrinsics_source": source,
+            "turned": [files[i].stem for i in turned]}
 
 
 def _estimate_intrinsics(image_path: Path, w: int, h: int) -> tuple[float, float, float, float, str]:

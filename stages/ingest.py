@@ -86,6 +86,7 @@ def run(ctx) -> None:
     layout = views.pop("layout")
     intrinsics_source = views.pop("intrinsics_source")
     files = views.pop("files", None)  # the input's own image file of each view, where its pixels are the view's
+    turned = views.pop("turned", [])  # photos stored the other way round, turned to the others' orientation
     given = {"w2c": views.pop("input_w2c"), "points": views.pop("input_points")} if "input_w2c" in views else None
     n, h, w = views["images"].shape[:3]
     if n < MIN_VIEWS:
@@ -93,6 +94,9 @@ def run(ctx) -> None:
                                 f"least {MIN_VIEWS} overlapping photos of the object")
     ctx.log.info("read %d views of %dx%d (%s layout): %s", n, w, h, layout,
                  ", ".join(k for k in ("masks", "mono_depth", "mono_normal") if k in views) or "no masks or priors")
+    if turned:
+        ctx.log.info("%d photo(s) stored %s turned by 90 deg to the others' %dx%d (the same camera held the other "
+                     "way): %s", len(turned), "portrait" if w > h else "landscape", w, h, ", ".join(turned))
     io.save_arrays(ctx.out / artifacts.VIEWS, views)
     if given is not None:  # a COLMAP model's poses: kept apart from the views, read only where a run starts from them
         io.save_arrays(ctx.out / artifacts.INPUT_CAMERAS, given, chunk_first=False)
@@ -102,7 +106,7 @@ def run(ctx) -> None:
         "has_mono_normal": "mono_normal" in views, "intrinsics_source": intrinsics_source,
         "has_cameras": scenes.layout_has_cameras(layout), "has_input_poses": given is not None, "undistorted_with": list(p.distortion),
         "source": str(ctx.scene_ref.path) if ctx.scene_ref.path else ctx.scene_ref.name,
-        "files": files,
+        "files": files, "turned_90": turned,
     })
     io.save_png(ctx.out / "contact_sheet.png", contact_sheet(views["images"], views.get("masks")))
     ctx.metrics.update(n_views=n, width=w, height=h, layout=layout, intrinsics_source=intrinsics_source,

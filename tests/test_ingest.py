@@ -315,6 +315,21 @@ def test_an_image_of_another_size_is_named(plain_folder, tiny_synthetic):
         views_of(plain_folder)
 
 
+def test_a_photo_stored_turned_joins_the_others_turned_back(tmp_path, tiny_synthetic):
+    """One photo stored portrait among landscape ones (the same camera held the other way) is turned by
+    90 deg to their size and shares their camera; the export writes its turned pixels, not its file."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    landscape = [im[8:56] for im in tiny_synthetic.images]  # [48,64,3] each
+    for i, im in enumerate(landscape):
+        io.save_png(folder / f"IMG_{i:04d}.png", np.rot90(im) if i == 3 else im)
+    views = views_of(folder)
+    assert views["images"].shape[1:3] == (48, 64) and views["turned"] == ["IMG_0003"]
+    assert np.array_equal(views["images"][3], landscape[3])
+    assert views["files"][3] is None and views["files"][2].endswith("IMG_0002.png")
+    assert np.allclose(views["K"], views["K"][0])
+
+
 def test_an_artifacts_folder_inside_the_photo_folder_is_not_an_input(plain_folder, tmp_path, monkeypatch):
     """`--scene . --artifacts ./artifacts`: what the runs write there leaves the photos' signature (and so
     ingest) as it was; a new photo still changes it."""
