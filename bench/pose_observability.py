@@ -51,9 +51,10 @@ def sfm_all_tracks(store: pipeline.Store, seed: int = 0) -> tuple[list[int], pos
     ids = [int(v) for v in np.flatnonzero(inputs.train_mask)]
     with io.native_output_to(Path("/dev/null")):
         res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
-                                          sizes=inputs.sizes, prior_focal=inputs.intrinsics_source != "default",
-                                          reproj_px=p.reproj_px, final_ba_loss=p.ba_loss,
-                                          final_ba_scale_px=p.ba_loss_px, seed=seed)
+                                          sizes=inputs.sizes, mapper=pose_init.MapperOptions(
+                                              prior_focal=inputs.intrinsics_source != "default",
+                                              reproj_px=p.reproj_px, final_ba_loss=p.ba_loss,
+                                              final_ba_scale_px=p.ba_loss_px, seed=seed))
     return ids, res, TrackSet(ids, inputs.views.K, res.obs_view, res.obs_point, res.obs_uv)
 
 

@@ -114,49 +114,52 @@ def _foreground_points(obs: dict, masks: Sequence[np.ndarray], n_points: int) ->
     return n_fg > 0.5 * np.maximum(n_obs, 1)
 
 
-def init_from_matches(
-    view_ids: Sequence[int],
-    K: np.ndarray,
-    keypoints: Sequence[np.ndarray],
-    pairs: Sequence,
-    W: np.ndarray | None = None,
-    *,
-    sizes: np.ndarray | None = None,
-    refine: Sequence[str] = (),
-    prior_focal: bool = True,
-    reproj_px: float = 3.0,
-    min_angle_deg: float = 1.5,
-    min_num_matches: int = 15,
-    seed: int = 0,
-    final_ba_loss: str = "cauchy",
-    final_ba_scale_px: float = 0.5,
-    gauge_radius: float = 0.8,
-    gauge_percentile: float = 99.0,
-    gauge_centre: str = "box",
-    masks: Sequence[np.ndarray] | None = None,
-    object_min_seen: float = 0.5,
-    principal_point_p: float | None = None,
-    radial_p: float | None = None,
-    log: Callable[[str], None] | None = None,
-) -> InitResult:
+@dataclass(frozen=True)
+class MapperOptions:
+    """How COLMAP's mapper and the last bundle adjustment run (:func:`manifoldneus.sfm.map_views`)."""
+
+    refine: tuple[str, ...] = ()  # intrinsics bundle adjustment may change (``sfm.REFINABLE``)
+    prior_focal: bool = True  # K's focal length is known (EXIF or calibration), not a guess
+    reproj_px: float = 3.0
+    min_angle_deg: float = 1.5
+    min_num_matches: int = 15
+    seed: int = 0
+    final_ba_loss: str = "cauchy"  # the robust loss of a last adjustment after COLMAP's plain least squares
+    final_ba_scale_px: float = 0.5
+    principal_point_p: float | None = None  # the likelihood-ratio tests of map_views
+    radial_p: float | None = None
+
+
+@dataclass(frozen=True)
+class GaugeOptions:
+    """The unit-sphere gauge of the mapper's points (:func:`manifoldneus.cameras.gauge_from_points`)."""
+
+    radius: float = 0.8
+    percentile: float = 99.0
+    centre: str = "box"  # box | median
+    object_min_seen: float = 0.5  # without masks: the points at least this fraction of the views see
+
+
+def init_from_matches(view_ids: Sequence[int], K: np.ndarray, keypoints: Sequence[np.ndarray], pairs: Sequence,
+                      W: np.ndarray | None = None, *, sizes: np.ndarray | None = None,
+                      mapper: MapperOptions = MapperOptions(), gauge: GaugeOptions = GaugeOptions(),
+                      masks: Sequence[np.ndarray] | None = None, log: Callable[[str], None] | None = None,
+                      ) -> InitResult:
     """Initial poses of the views ``view_ids`` (the anchors) from our verified matches, by
     COLMAP's incremental mapper (:func:`manifoldneus.sfm.map_views`: initial pair, registration,
-    triangulation, bundle adjustment), then our gauge.
+    triangulation, bundle adjustment, as ``mapper`` says), then our gauge.
 
     K [N,3,3], keypoints (length N, [K_v,2] pixels), pairs (:class:`PairMatch`) and W [N,N] are
     indexed by **global** view id; only pairs with both views in ``view_ids`` are used. sizes [N,2]
-    (H, W) default to twice the principal point. refine: intrinsics bundle adjustment may change
-    (``sfm.REFINABLE``); prior_focal: whether K's focal length is known (EXIF or calibration) or a
-    guess; principal_point_p, radial_p: see :func:`manifoldneus.sfm.map_views`. final_ba_loss / final_ba_scale_px: the robust loss of a last bundle adjustment after
-    COLMAP's (whose global adjustments are plain least squares), "trivial" = none. masks (optional, one [H,W] bool per entry of ``view_ids``): the gauge's robust extent is
-    then measured on the points seen mostly inside the foreground (when there are >= 20 of them);
-    without masks, on the points at least ``object_min_seen`` of the registered views see
-    (:mod:`manifoldneus.object_region`), whose region (ball and support plane, gauge frame) the
-    diagnostics carry as ``object_region``.
+    (H, W) default to twice the principal point. masks (optional, one [H,W] bool per entry of
+    ``view_ids``): the gauge's robust extent is then measured on the points seen mostly inside the
+    foreground (when there are >= 20 of them); without masks, on the points at least
+    ``gauge.object_min_seen`` of the registered views see (:mod:`manifoldneus.object_region`), whose
+    region (ball and support plane, gauge frame) the diagnostics carry as ``object_region``.
 
     Gauge (:func:`manifoldneus.cameras.gauge_from_points`): y = s (x - c), s maps the half diagonal of the
-    points' box between their ``100 - gauge_percentile``-th and ``gauge_percentile``-th percentiles per axis to
-    gauge_radius, c the box's middle or (``gauge_centre="median"``) the points' median, pulled towards the box's
+    points' box between their ``100 - gauge.percentile``-th and ``gauge.percentile``-th percentiles per axis to
+    gauge.radius, c the box's middle or (``gauge.centre="median"``) the points' median, pulled towards the box's
     middle as far as keeps the box in the unit sphere: the object sits inside the unit sphere. Views COLMAP does
     not register (outside its largest model) keep the pose of their best-matching registered neighbour (method ``fallback:<id>``) and are listed
     in ``unplaced`` with the reason in ``why_unplaced``.
@@ -180,11 +183,12 @@ def init_from_matches(
                else np.asarray(sizes, int).reshape(-1, 2)[view_ids])
     local_pairs = [p._replace(i=loc[p.i], j=loc[p.j]) for p in pairs]
     names = [f"{g:06d}" for g in view_ids]
-    rec = sfm.map_views(names, Kl, sizes_l, [keypoints[g] for g in view_ids], local_pairs, refine=refine,
-                        prior_focal=prior_focal, seed=seed, min_num_matches=min_num_matches, reproj_px=reproj_px,
-                        min_tri_angle_deg=min_angle_deg, final_ba_loss=final_ba_loss,
-                        final_ba_scale_px=final_ba_scale_px, principal_point_p=principal_point_p,
-                        radial_p=radial_p, log=say)
+    m = mapper
+    rec = sfm.map_views(names, Kl, sizes_l, [keypoints[g] for g in view_ids], local_pairs, refine=m.refine,
+                        prior_focal=m.prior_focal, seed=m.seed, min_num_matches=m.min_num_matches,
+                        reproj_px=m.reproj_px, min_tri_angle_deg=m.min_angle_deg, final_ba_loss=m.final_ba_loss,
+                        final_ba_scale_px=m.final_ba_scale_px, principal_point_p=m.principal_point_p,
+                        radial_p=m.radial_p, log=say)
     placed = rec["registered"]
     pts = rec["points"]
 
@@ -194,10 +198,10 @@ def init_from_matches(
     if masks is not None and len(pts):
         in_mask = _foreground_points(rec, masks, len(pts))
     elif len(pts) and len(reg):  # no masks: the points in the registered views' common frustum
-        in_mask = object_region.seen_fraction(pts, rec["K"][reg], w2c[reg], sizes_l[reg]) >= object_min_seen
+        in_mask = object_region.seen_fraction(pts, rec["K"][reg], w2c[reg], sizes_l[reg]) >= gauge.object_min_seen
     gpts = pts[in_mask] if in_mask.sum() >= 20 else pts
     if len(gpts) >= 3:
-        s, centre = gauge_from_points(gpts, gauge_radius, gauge_percentile, gauge_centre)
+        s, centre = gauge_from_points(gpts, gauge.radius, gauge.percentile, gauge.centre)
     else:  # no structure: the views look at the origin from identity_init's distance
         s, centre = 1.0, np.zeros(3)
         w2c[:] = identity_init(V)
@@ -206,7 +210,7 @@ def init_from_matches(
     w2c = transform_w2c(w2c, s, np.eye(3), -s * centre)
     region = None
     if len(pts) and len(reg):
-        region, _ = object_region.locate(s * (pts - centre), rec["K"][reg], w2c[reg], sizes_l[reg], object_min_seen,
+        region, _ = object_region.locate(s * (pts - centre), rec["K"][reg], w2c[reg], sizes_l[reg], gauge.object_min_seen,
                                          seen=None if masks is not None else in_mask)
 
     method = ["mapped" if placed[a] else "" for a in range(V)]
@@ -219,7 +223,7 @@ def init_from_matches(
         why[g] = ("no verified matches to the other views" if not linked else
                   "its matches link it only to views COLMAP did not register" if not nb else
                   f"COLMAP could not register it ({int(Wsub[a, nb[0]])} verified matches to its best registered "
-                  f"neighbour {view_ids[nb[0]]}; fewer than {min_num_matches} or a failed pose)")
+                  f"neighbour {view_ids[nb[0]]}; fewer than {m.min_num_matches} or a failed pose)")
         w2c[a] = w2c[nb[0]] if nb else w2c[a]
         method[a] = f"fallback:{view_ids[nb[0]]}" if nb else "identity"
     for g in unplaced:
@@ -235,7 +239,7 @@ def init_from_matches(
         "n_points_in_mask": int(in_mask.sum()),
         "n_observations": int(len(rec["obs_view"])),
         "mean_reproj_px": rec["mean_reproj_px"],
-        "refine_intrinsics": list(refine),
+        "refine_intrinsics": list(m.refine),
         "principal_point_test": rec["principal_point_test"],
         "radial_test": rec["radial_test"],
         "K": refined_K[np.flatnonzero(placed)[0]].tolist() if placed.any() else Kl[0].tolist(),

@@ -199,12 +199,12 @@ class Round:
         self.corr = None
         device = cfg.run.device
         if learn_poses and self.corr_p.kind == "reprojection":
-            from manifoldneus.pose_init import init_from_matches
+            from manifoldneus.pose_init import MapperOptions, init_from_matches
 
             # the tracks (not the poses) of COLMAP's reconstruction of this round's views' matches
             with io.native_output_to(cfg.log_path) if cfg.log_path else contextlib.nullcontext():  # COLMAP's own log goes to log.txt
                 ba = init_from_matches(self.ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
-                                       sizes=inputs.sizes, seed=cfg.run.seed)
+                                       sizes=inputs.sizes, mapper=MapperOptions(seed=cfg.run.seed))
             self.corr = correspondence.ReprojectionLoss(
                 correspondence.TrackSet(self.ids, inputs.views.K, ba.obs_view, ba.obs_point, ba.obs_uv), self.corr_p,
                 correspondence_weight, device)

@@ -298,6 +298,13 @@ def calibrated_inputs(env: InitEnv, inputs: posefree.SceneInputs, p: Params
     return posefree.with_intrinsics(inputs, K, distortion), (), calibration, reconstruction
 
 
+def mapper_options(inputs: posefree.SceneInputs, p: Params, seed: int, refine=()) -> pose_init.MapperOptions:
+    """COLMAP's mapper as the anchors run it, on the views' intrinsics (``refine``: what it may change)."""
+    return pose_init.MapperOptions(refine=tuple(refine), prior_focal=inputs.intrinsics_source != "default",
+                                   reproj_px=p.reproj_px, final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px,
+                                   principal_point_p=p.principal_point_p, radial_p=p.radial_p, seed=seed)
+
+
 def self_calibrate(env: InitEnv, inputs: posefree.SceneInputs, refine, p: Params
                    ) -> tuple[np.ndarray, np.ndarray | None, dict, pose_init.InitResult | None]:
     """The shared camera's intrinsics ``refine`` estimated by COLMAP's mapper and bundle adjustment on every
@@ -307,11 +314,8 @@ def self_calibrate(env: InitEnv, inputs: posefree.SceneInputs, refine, p: Params
     ids = [int(v) for v in np.flatnonzero(inputs.train_mask)]
     with io.native_output_to(env.log_path):
         res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
-                                          sizes=inputs.sizes, refine=refine,
-                                          prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px,
-                                          final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px,
-                                          principal_point_p=p.principal_point_p, radial_p=p.radial_p,
-                                          seed=env.seed, log=env.log.info)
+                                          sizes=inputs.sizes, mapper=mapper_options(inputs, p, env.seed, refine),
+                                          log=env.log.info)
     placed = np.flatnonzero(res.placed)
     if len(placed) == 0:
         env.log.warning("self-calibration registered no view; the intrinsics stay as the ingest gave them")
@@ -340,14 +344,10 @@ def matches_init(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int],
     masks = None if inputs.views.masks is None else [inputs.views.masks[v] for v in ids]
     with io.native_output_to(env.log_path):  # COLMAP's own log goes to log.txt
         return pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
-                                           sizes=inputs.sizes, refine=refine,
-                                           prior_focal=inputs.intrinsics_source != "default", reproj_px=p.reproj_px,
-                                           final_ba_loss=p.ba_loss, final_ba_scale_px=p.ba_loss_px,
-                                           gauge_radius=p.gauge_radius, masks=masks,
-                                           object_min_seen=p.object_min_seen,
-                                           gauge_percentile=p.gauge_percentile, gauge_centre=p.gauge_centre,
-                                           principal_point_p=p.principal_point_p, radial_p=p.radial_p,
-                                           seed=env.seed, log=env.log.info)
+                                           sizes=inputs.sizes, mapper=mapper_options(inputs, p, env.seed, refine),
+                                           gauge=pose_init.GaugeOptions(p.gauge_radius, p.gauge_percentile,
+                                                                        p.gauge_centre, p.object_min_seen),
+                                           masks=masks, log=env.log.info)
 
 
 def init_views(anchors: list[int], W: np.ndarray, trainable, min_matches: int) -> list[int]:

@@ -82,8 +82,8 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
     from manifoldneus import cameras
 
     ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
-    res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, reproj_px=reproj_px,
-                                      sizes=inputs.sizes, seed=seed)
+    res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, sizes=inputs.sizes,
+                                      mapper=pose_init.MapperOptions(reproj_px=reproj_px, seed=seed))
     row = {v: k for k, v in enumerate(ids)}
     ok = [v for v in placed_ids if res.placed[row[v]]]
     if len(ok) < 3:

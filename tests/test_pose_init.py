@@ -312,10 +312,11 @@ def test_principal_point_off_the_centre_is_refined():
     def rot(out):
         return evaluate_poses(out.w2c, s.w2c)["summary"]["rot_err_deg"]["mean"]
 
-    both = PI.init_from_matches(list(range(n)), s.K, kps, pairs, refine=("focal", "principal_point"),
-                                prior_focal=False, principal_point_p=1e-3)
+    both = PI.init_from_matches(list(range(n)), s.K, kps, pairs, mapper=PI.MapperOptions(
+        refine=("focal", "principal_point"), prior_focal=False, principal_point_p=1e-3))
     assert both.diagnostics["principal_point_test"]["freed"], both.diagnostics["principal_point_test"]
-    focal_only = PI.init_from_matches(list(range(n)), s.K, kps, pairs, refine=("focal",), prior_focal=False)
+    focal_only = PI.init_from_matches(list(range(n)), s.K, kps, pairs,
+                                      mapper=PI.MapperOptions(refine=("focal",), prior_focal=False))
     true_K = PI.init_from_matches(list(range(n)), K, kps, pairs)
     assert both.placed.all() and focal_only.placed.all()
     assert np.abs(both.K[0, :2, 2] - K[0, :2, 2]).max() < 0.01 * res, both.K[0]
@@ -337,8 +338,8 @@ def test_principal_point_at_the_centre_and_no_lens_distortion_are_not_freed():
     feats = extract_all(s.images, workers=2)
     pairs = PI.pairs_from_matches(match_pairs(feats, exhaustive_pairs(n), s.K, workers=2))
     out = PI.init_from_matches(list(range(n)), s.K, [f["keypoints"] for f in feats], pairs,
-                               refine=("focal", "principal_point", "radial"), prior_focal=False,
-                               principal_point_p=1e-3, radial_p=1e-3)
+                               mapper=PI.MapperOptions(refine=("focal", "principal_point", "radial"),
+                                                       prior_focal=False, principal_point_p=1e-3, radial_p=1e-3))
     for test in (out.diagnostics["principal_point_test"], out.diagnostics["radial_test"]):
         assert not test["freed"] and test["chi2"] < test["threshold"], test
     assert np.allclose(out.K[:, :2, 2], s.K[:, :2, 2])
@@ -360,7 +361,7 @@ def test_focal_length_is_refined_from_a_wrong_guess():
     kps = [f["keypoints"] for f in feats]
     K0 = s.K.copy()
     K0[:, :2, :2] *= 1.3
-    out = PI.init_from_matches(list(range(n)), K0, kps, pairs, refine=("focal",), prior_focal=False)
+    out = PI.init_from_matches(list(range(n)), K0, kps, pairs, mapper=PI.MapperOptions(refine=("focal",), prior_focal=False))
     assert out.placed.all()
     assert abs(out.K[0, 0, 0] / s.K[0, 0, 0] - 1) < 0.02, out.K[0]
     assert np.allclose(out.K[:, 0, 0], out.K[0, 0, 0]) and np.allclose(out.K[:, 1, 1], out.K[0, 0, 0])  # one camera
