@@ -106,7 +106,7 @@ def field_report(store: pipeline.Store, version: str, control_deg: float, rays_p
     views = art.load_views(store.version_dir("ingest", store.current("ingest")), final["w2c"], final["K"],
                            final.get("distortion"))
     ids = np.flatnonzero(final["optimised"].astype(bool))
-    trainer = evaluation.trainer_from_checkpoint(final_dir / art.MODEL, posefree.subset_views(views, ids, final["w2c"]))
+    trainer = evaluation.trainer_from_checkpoint(final_dir / art.MODEL, views.subset(ids, final["w2c"]))
     w2c = np.asarray(final["w2c"], np.float64)[ids]  # [M,4,4]
     gen = torch.Generator().manual_seed(seed)
     view = torch.arange(len(ids)).repeat_interleave(rays_per_view)  # [M*R]

@@ -103,14 +103,13 @@ class Surface:
 def load_surface_field(surface_dir: Path, ingest_dir: Path, device: str = "cpu") -> Surface:
     """The field of ``surface/<version>`` with the views of ``ingest/<version>`` posed by its round."""
     from manifoldneus import artifacts
-    from manifoldneus.posefree import subset_views
 
     result = artifacts.load_surface(surface_dir)
     views = artifacts.load_views(ingest_dir, result["w2c"], result["K"], result.get("distortion"))
     G = result[artifacts.FIELD_FROM_MODEL]
     ids = np.flatnonzero(result["optimised"].astype(bool))
     w2c = cameras.transform_w2c(result["w2c"], *cameras.sim3_from_matrix(G))  # [N,4,4] in the field's frame
-    sub = subset_views(views, ids, w2c)
+    sub = views.subset(ids, w2c)
     return Surface(trainer_from_checkpoint(Path(surface_dir) / artifacts.MODEL, sub, device), G, result, views, ids)
 
 

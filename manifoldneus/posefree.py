@@ -114,16 +114,6 @@ def load_inputs(ingest: Path, features: Path, matching: Path, covisibility: Path
                        schedule, train_mask, meta.get("intrinsics_source", "calibrated"))
 
 
-def subset_views(views: Views, ids, w2c_all: np.ndarray) -> Views:
-    ids = np.asarray(ids, int)
-
-    def pick(a):
-        return None if a is None else a[ids]
-
-    return Views(views.images[ids], views.K[ids], w2c_all[ids], pick(views.masks), pick(views.mono_depth),
-                 pick(views.mono_normal), [views.names[i] for i in ids])
-
-
 @dataclasses.dataclass(frozen=True)
 class PoseLearning:
     """How a round learns its views' poses: the keys of the stage's section that say it (`anchors`,
@@ -219,7 +209,7 @@ class Round:
         # correction driven by an unfitted field only moves good initial poses away.
         self.pose_start = int(round(poses.start_frac * iters))
         self.trainer = Trainer(
-            subset_views(inputs.views, self.ids, w2c_all), cfg.field, cfg.render, cfg.loss, train_p, run=run,
+            inputs.views.subset(self.ids, w2c_all), cfg.field, cfg.render, cfg.loss, train_p, run=run,
             band_weight_fn=lambda view, step: gate.band_weights(view, step, iters, s_sub, self.trainer.field.n_bands,
                                                                 gate_p, gate_start),
             pose_start=self.pose_start, pose_loss=self.corr,

@@ -30,6 +30,16 @@ class Views:
     def hw(self) -> tuple[int, int]:
         return int(self.images.shape[1]), int(self.images.shape[2])
 
+    def subset(self, ids, w2c_all: np.ndarray) -> "Views":
+        """The views ``ids`` (rows of these), posed by ``w2c_all`` [N,4,4] (indexed like these)."""
+        ids = np.asarray(ids, int)
+
+        def pick(a):
+            return None if a is None else a[ids]
+
+        return Views(self.images[ids], self.K[ids], w2c_all[ids], pick(self.masks), pick(self.mono_depth),
+                     pick(self.mono_normal), [self.names[i] for i in ids])
+
     def resized(self, size: int) -> "Views":
         """Downscale (area filter) so the longest side is ``size``; K follows (pixel-centre
         convention: plain scaling). Normals are renormalised, masks re-thresholded at 0.5."""

@@ -101,7 +101,7 @@ def run(ctx) -> None:
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     ckpt = ctx.checkpoint_dir / artifacts.MODEL
     lp = ctx.section("loss")
-    trainer = Trainer(posefree.subset_views(views, ids, w2c), ctx.section("field"), ctx.section("render"), lp,
+    trainer = Trainer(views.subset(ids, w2c), ctx.section("field"), ctx.section("render"), lp,
                       ctx.section("train"), run=trun, checkpoint_path=ckpt)
     if lp.w_free_space > 0 and views.masks is None:  # without masks: no surface along the SfM lines of sight
         sfm_points = artifacts.load_initial_poses(ctx.input("anchors"), list(posefree.SFM_POINTS))
