@@ -16,7 +16,7 @@ setup: .venv/.installed
 	python3 -m venv .venv
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -c constraints.txt -e ".[dask,dev]"
-	$(PY) -c "from manifoldneus.grid_encoding import fused_kernel; fused_kernel()"  # builds the CPU grid kernel once
+	$(PY) -c "from manifoldneus.neural.grid_encoding import fused_kernel; fused_kernel()"  # builds the CPU grid kernel once
 	touch $@
 
 all: setup

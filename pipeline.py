@@ -36,7 +36,7 @@ from runner.store import gc
 
 from manifoldneus import __version__
 from manifoldneus.config import ParamError
-from manifoldneus.scenes import SceneError
+from manifoldneus.data.scenes import SceneError
 
 
 # ---------------------------------------------------------------------------- CLI
@@ -223,7 +223,7 @@ def _command(args) -> int:
         print(f"{path}  ({held['bytes'] / 2**20:.1f} MiB: {held['optimised']} optimised cameras, "
               f"{held['held_out_drawn']} held-out cameras, mesh of {held['faces']} triangles{decimated})")
         if args.screenshot:
-            from manifoldneus import viewer
+            from manifoldneus.output import viewer
 
             shown = viewer.render_in_browser(path, args.screenshot)
             print(f"{args.screenshot}  (the page in headless Chromium: {shown['attributes'].get('cameras-drawn')} "

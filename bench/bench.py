@@ -42,8 +42,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pipeline
-from manifoldneus.artifacts import ANCHOR_ROUND, REFERENCE_POSE_METRICS, ROUND_META, load_evaluation, successor_rounds
-from manifoldneus import io
+from manifoldneus.data.artifacts import ANCHOR_ROUND, REFERENCE_POSE_METRICS, ROUND_META, load_evaluation, successor_rounds
+from manifoldneus.data import io
 from runner import executor
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -282,7 +282,7 @@ def summarise(rows: dict) -> dict:
 def grid_kernel_used() -> str:
     """The neural grids' kernel in this process: "fused", or "torch: <why the fused one did not
     load>" (a warning in the run's log only, and about twice the CPU time)."""
-    from manifoldneus import grid_encoding
+    from manifoldneus.neural import grid_encoding
 
     return "fused" if grid_encoding.fused_kernel() is not None else f"torch: {grid_encoding.fused_unavailable_reason()}"
 

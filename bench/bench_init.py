@@ -25,7 +25,10 @@ from pathlib import Path
 import numpy as np
 
 import pipeline
-from manifoldneus import cameras, io, pose_init, pose_metrics, posefree, scenes
+from manifoldneus.geometry import cameras, pose_metrics
+from manifoldneus.data import io, scenes
+from manifoldneus.sfm import pose_init
+from manifoldneus import posefree
 from stages import anchors as anchors_stage
 
 ROOT = Path(__file__).resolve().parent.parent

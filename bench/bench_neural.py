@@ -7,7 +7,7 @@ memory (max RSS) and wall time. Prints a table and writes JSON.
     .venv/bin/python -m bench.bench_neural --field grid --budget 420 --out /tmp/bench_neural.json
     .venv/bin/python -m bench.bench_neural --throughput-only      # rays/s of both fields
 
-The scene is read by manifoldneus.scenes (the ingest and ground_truth stages' readers).
+The scene is read by manifoldneus.data.scenes (the ingest and ground_truth stages' readers).
 """
 from __future__ import annotations
 
@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from manifoldneus.field import FieldParams
-from manifoldneus.losses import LossParams
-from manifoldneus.metrics import psnr, ssim
-from manifoldneus.render import RenderParams
-from manifoldneus.scenes import read_ground_truth, read_views, resolve_scene
-from manifoldneus.train import TrainParams, Trainer, TrainRun, Views
+from manifoldneus.neural.field import FieldParams
+from manifoldneus.neural.losses import LossParams
+from manifoldneus.output.metrics import psnr, ssim
+from manifoldneus.neural.render import RenderParams
+from manifoldneus.data.scenes import read_ground_truth, read_views, resolve_scene
+from manifoldneus.neural.train import TrainParams, Trainer, TrainRun, Views
 from stages.ingest import Params as IngestParams
 
 
@@ -70,7 +70,7 @@ def evaluate(tr: Trainer, test_ids, save_dir: Path | None = None) -> dict:
             pm.append(psnr(pred, gt, m))
             sm.append(ssim(pred, gt, m))
         if save_dir is not None:
-            from manifoldneus.io import save_png
+            from manifoldneus.data.io import save_png
 
             save_dir.mkdir(parents=True, exist_ok=True)
             save_png(save_dir / f"view{i:02d}.png", np.concatenate([pred, gt], 1))
@@ -252,8 +252,8 @@ def main():
         "history": tr.history,
     }
     if args.mesh is not None:
-        from manifoldneus.artifacts import MESH  # here: `profile_step --code` imports this module on older code
-        from manifoldneus.meshing import extract_mesh, save_ply, save_preview
+        from manifoldneus.data.artifacts import MESH  # here: `profile_step --code` imports this module on older code
+        from manifoldneus.output.meshing import extract_mesh, save_ply, save_preview
 
         t0 = time.time()
         args.mesh.mkdir(parents=True, exist_ok=True)
@@ -262,7 +262,7 @@ def main():
         save_preview(mesh, args.mesh / "mesh.png")
         res["mesh"] = {"faces": int(len(mesh.faces)), "seconds": time.time() - t0}
         if tr.views.masks is not None:
-            from manifoldneus.meshing import cull_by_masks, largest_components
+            from manifoldneus.output.meshing import cull_by_masks, largest_components
 
             dil = max(1, round(12 * tr.W / 384))  # ~12 px at the data's 384 px
             tv = np.asarray(train_ids)

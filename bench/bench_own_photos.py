@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import pipeline
-from manifoldneus.artifacts import load_evaluation
+from manifoldneus.data.artifacts import load_evaluation
 from bench import bench
 from bench.bench import git_commit, spread
 

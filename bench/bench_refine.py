@@ -29,10 +29,10 @@ from pathlib import Path
 
 
 import pipeline
-from manifoldneus.artifacts import load_evaluation, load_reference_surface_meta
+from manifoldneus.data.artifacts import load_evaluation, load_reference_surface_meta
 from bench import bench
 from bench.bench import git_commit, spread
-from manifoldneus import io
+from manifoldneus.data import io
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -22,8 +22,8 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from bench import bench
-from manifoldneus import synthetic
-from manifoldneus.cameras import camera_centers, lift_points, project_points
+from manifoldneus.data import synthetic
+from manifoldneus.geometry.cameras import camera_centers, lift_points, project_points
 from stages import features, matching
 
 

@@ -36,12 +36,16 @@ from scipy.spatial.transform import Rotation
 
 import pipeline
 from bench import bench
-from manifoldneus import artifacts as art
-from manifoldneus import evaluation, io, pose_init, pose_metrics, posefree
-from manifoldneus.artifacts import load_ground_truth_poses
-from manifoldneus.cameras import camera_centers
-from manifoldneus.correspondence import TrackSet, reprojection_px
-from manifoldneus.pose_alignment import residuals
+from manifoldneus.data import artifacts as art
+from manifoldneus.output import evaluation
+from manifoldneus.data import io
+from manifoldneus.sfm import pose_init
+from manifoldneus.geometry import pose_metrics
+from manifoldneus import posefree
+from manifoldneus.data.artifacts import load_ground_truth_poses
+from manifoldneus.geometry.cameras import camera_centers
+from manifoldneus.sfm.correspondence import TrackSet, reprojection_px
+from manifoldneus.neural.pose_alignment import residuals
 
 
 def sfm_all_tracks(store: pipeline.Store, seed: int = 0) -> tuple[list[int], pose_init.InitResult, TrackSet]:

@@ -62,10 +62,10 @@ def one_seed(args, seed: int) -> dict:
     from torch.profiler import ProfilerActivity, profile
 
     from bench.bench_neural import load_scene
-    from manifoldneus.field import FieldParams
-    from manifoldneus.losses import LossParams
-    from manifoldneus.render import RenderParams
-    from manifoldneus.train import TrainParams, Trainer, TrainRun
+    from manifoldneus.neural.field import FieldParams
+    from manifoldneus.neural.losses import LossParams
+    from manifoldneus.neural.render import RenderParams
+    from manifoldneus.neural.train import TrainParams, Trainer, TrainRun
 
     sections = [FieldParams(), RenderParams(), LossParams(), TrainParams(batch_rays=args.rays, image_size=args.size)]
     for item in args.set:
@@ -85,7 +85,7 @@ def one_seed(args, seed: int) -> dict:
         tr.train_step()
     wall, cpu = (time.perf_counter() - t0) / args.steps, (cpu_s() - c0) / args.steps
     # network-evaluated samples per ray, as the step renders them (no gradients, same sampler)
-    from manifoldneus.render import render_rays
+    from manifoldneus.neural.render import render_rays
 
     with torch.no_grad():
         b = tr.sample_batch(args.rays)

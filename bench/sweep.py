@@ -48,11 +48,11 @@ import numpy as np
 from scipy.stats import rankdata
 
 import pipeline
-from manifoldneus import io
-from manifoldneus.artifacts import load_evaluation, load_gt_meta, load_schedule_meta, load_views_meta, round_folder
+from manifoldneus.data import io
+from manifoldneus.data.artifacts import load_evaluation, load_gt_meta, load_schedule_meta, load_views_meta, round_folder
 from runner import executor
 from manifoldneus.config import ParamError
-from manifoldneus.scenes import SceneError
+from manifoldneus.data.scenes import SceneError
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -25,14 +25,16 @@ from typing import Callable
 import numpy as np
 import torch
 
-from manifoldneus import artifacts, correspondence, gate, io
+from manifoldneus.data import artifacts, io
+from manifoldneus.sfm import correspondence
+from manifoldneus.neural import gate
 from manifoldneus.config import RunParams
-from manifoldneus.correspondence import CorrespondenceParams
-from manifoldneus.field import FieldParams
-from manifoldneus.gate import GateParams
-from manifoldneus.losses import LossParams
-from manifoldneus.render import RenderParams
-from manifoldneus.train import Trainer, TrainParams, TrainRun, Views
+from manifoldneus.sfm.correspondence import CorrespondenceParams
+from manifoldneus.neural.field import FieldParams
+from manifoldneus.neural.gate import GateParams
+from manifoldneus.neural.losses import LossParams
+from manifoldneus.neural.render import RenderParams
+from manifoldneus.neural.train import Trainer, TrainParams, TrainRun, Views
 
 INPUT_STAGES = ("ingest", "features", "matching", "covisibility", "schedule")  # what load_inputs reads
 ROUND_SECTIONS = ("field", "render", "loss", "train", "gate", "correspondence", "run")  # what a Round reads
@@ -82,7 +84,7 @@ def with_intrinsics(inputs: SceneInputs, K: np.ndarray, distortion: np.ndarray |
     refine the ingest's; every later round reads them from the previous round's ``poses.zarr``) and,
     where the self-calibration found one, the lens ``distortion`` [N,4] removed from the images, masks
     and keypoints (once: inputs already undistorted must be given the same distortion or none)."""
-    from manifoldneus.cameras import has_distortion, undistort_points
+    from manifoldneus.geometry.cameras import has_distortion, undistort_points
 
     K = np.asarray(K, np.float64)
     views = dataclasses.replace(inputs.views, K=K)
@@ -99,7 +101,7 @@ def with_intrinsics(inputs: SceneInputs, K: np.ndarray, distortion: np.ndarray |
 
 def load_inputs(ingest: Path, features: Path, matching: Path, covisibility: Path, schedule: Path) -> SceneInputs:
     """The inputs of the rounds from the version folders of the stages :data:`INPUT_STAGES` names."""
-    from manifoldneus.pose_init import pairs_from_matches
+    from manifoldneus.sfm.pose_init import pairs_from_matches
 
     views = artifacts.load_views(ingest)  # identity placeholders for the poses
     meta = artifacts.load_views_meta(ingest)
@@ -142,7 +144,7 @@ def train_run(run: RunParams, iters: int, poses: PoseLearning) -> TrainRun:
 
 @dataclasses.dataclass(frozen=True)
 class Polish:
-    """The poses-only polish that closes a round (:func:`manifoldneus.pose_alignment.align_poses`): the
+    """The poses-only polish that closes a round (:func:`manifoldneus.neural.pose_alignment.align_poses`): the
     round's pose views refined against the field it trained, the field held."""
 
     steps: int
@@ -157,7 +159,7 @@ SFM_POINTS = ("object_points", "sight_lines")  # the anchors' SfM points, in ini
 def free_space_term(lp, sfm_points: dict, radius: float, device):
     """The loss section's free-space prior along the anchors' lines of sight (``sfm_points``, see
     :data:`SFM_POINTS`), or None when there are too few to say where space is free."""
-    from manifoldneus.losses import SightLines
+    from manifoldneus.neural.losses import SightLines
 
     lines = sfm_points.get("sight_lines")
     return None if lines is None or len(lines) < 20 else SightLines(lines, lp.sight_stop, radius, device=device)
@@ -189,7 +191,7 @@ class Round:
         self.corr = None
         device = cfg.run.device
         if learn_poses and self.corr_p.kind == "reprojection":
-            from manifoldneus.pose_init import MapperOptions, init_from_matches
+            from manifoldneus.sfm.pose_init import MapperOptions, init_from_matches
 
             # the tracks (not the poses) of COLMAP's reconstruction of this round's views' matches
             with io.native_output_to(cfg.log_path) if cfg.log_path else contextlib.nullcontext():  # COLMAP's own log goes to log.txt
@@ -248,7 +250,7 @@ class Round:
         self.pose_trace.append(trainer.poses_numpy())
 
     def _guard(self, log: logging.Logger, desc: str) -> dict:
-        """The per-view acceptance of :mod:`manifoldneus.correspondence`: a view keeps the round's pose
+        """The per-view acceptance of :mod:`manifoldneus.sfm.correspondence`: a view keeps the round's pose
         update only where its held-out tracks say it is better; the others get their start pose back."""
         t = self.trainer
         if self.corr is None:
@@ -296,8 +298,8 @@ class Round:
 
     def _polish(self, log: logging.Logger, desc: str, progress) -> dict:
         """Every pose view refined against the trained field, held fixed; how far each moved."""
-        from manifoldneus.cameras import camera_centers, rotation_angle_deg
-        from manifoldneus.pose_alignment import align_poses
+        from manifoldneus.geometry.cameras import camera_centers, rotation_angle_deg
+        from manifoldneus.neural.pose_alignment import align_poses
 
         t, pp, v = self.trainer, self.polish, torch.as_tensor(self.pose_local, device=self.trainer.device)
         before = t.poses().detach().clone()  # [n,3,4]
@@ -337,8 +339,8 @@ def load_carry(trainer: Trainer, carry: dict) -> None:
 def depth_at_fn(rnd: Round):
     """depth_at(view, uv [P,2]) -> distance along the ray [P] (NaN where the ray hits nothing),
     rendered from the round's current field and poses; for PnP placement of successors."""
-    from manifoldneus.rays import camera_rays
-    from manifoldneus.render import render_rays
+    from manifoldneus.geometry.rays import camera_rays
+    from manifoldneus.neural.render import render_rays
 
     t = rnd.trainer
     local = {int(g): i for i, g in enumerate(rnd.ids)}

@@ -31,7 +31,7 @@ import cv2  # noqa: E402,F401  - loads the system zlib before pycolmap's own def
 import pycolmap  # noqa: E402,F401  - imported before main() takes SIGTERM from the failure handler pycolmap installs
 
 from manifoldneus.config import ParamError  # noqa: E402
-from manifoldneus.scenes import SceneError, resolve_scene  # noqa: E402
+from manifoldneus.data.scenes import SceneError, resolve_scene  # noqa: E402
 from runner.common import DEFAULT_ARTIFACTS, DEFAULT_PARAMS, LOG, MANIFEST, ROOT, PipelineError, Terminated  # noqa: E402
 from runner.execute import Context, RunReport, cli_hint, run  # noqa: E402
 from runner.fingerprint import code_hash, compute_fingerprints, own_ingredients  # noqa: E402

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from manifoldneus import config
 from manifoldneus.config import ParamError
-from manifoldneus.scenes import resolve_scene
+from manifoldneus.data.scenes import resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, DEFAULT_PARAMS, LOG, MANIFEST, PipelineError
 from runner.fingerprint import chain_fingerprints, content_digest, file_digests, own_ingredients
 from runner.params import DeclaredKeys, resolve_params

@@ -6,9 +6,9 @@ import json
 import shlex
 from pathlib import Path
 
-from manifoldneus.artifacts import MESH, load_evaluation, load_schedule_meta  # `artifacts` is the folder here
-from manifoldneus.export import FRAME
-from manifoldneus.scenes import resolve_scene
+from manifoldneus.data.artifacts import MESH, load_evaluation, load_schedule_meta  # `artifacts` is the folder here
+from manifoldneus.output.export import FRAME
+from manifoldneus.data.scenes import resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, DEFAULT_PARAMS, PipelineError
 from runner.execute import RunReport, _refuse_damaged, cli_hint
 from runner.fingerprint import compute_fingerprints
@@ -85,7 +85,7 @@ def run_summary(scene_name: str, report: RunReport, artifacts=DEFAULT_ARTIFACTS,
 
 def posed_lines(successors_dir: Path, schedule_dir: Path) -> list[str]:
     """How many of the views meant to get a pose got one; a warning naming those that did not."""
-    from manifoldneus import artifacts
+    from manifoldneus.data import artifacts
 
     schedule = load_schedule_meta(schedule_dir)
     placed = artifacts.load_round_arrays(successors_dir / artifacts.FINAL_ROUND, ["placed"])["placed"].astype(bool)
@@ -244,7 +244,7 @@ def view(scene_name: str, artifacts=DEFAULT_ARTIFACTS, data_root=None, preset=No
     versions that one was computed from (:meth:`Store.lineage`). Default path:
     ``<artifacts>/<scene>/viewer/viewer.html`` (``viewer@<preset>.html`` for a preset). Returns
     (path, what the page holds: camera counts, triangles, bytes)."""
-    from manifoldneus import viewer
+    from manifoldneus.output import viewer
 
     scene = resolve_scene(scene_name, data_root)
     store = Store(artifacts, scene.name, preset)

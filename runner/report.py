@@ -13,7 +13,7 @@ Fig. A1 for NeuS-BARF and ManifoldNeuS. Output: ``artifacts/<scene>/report/`` un
 ``report.json`` beside the page holds the numbers behind the tables and plots.
 
 The report is an evaluation tool, so it reads the ``ground_truth`` stage. Pose errors are
-computed here from the rounds' poses with :func:`manifoldneus.pose_metrics.evaluate_poses`
+computed here from the rounds' poses with :func:`manifoldneus.geometry.pose_metrics.evaluate_poses`
 (the same function and view selection as the ``evaluate`` stage), so the table exists even when
 ``evaluate`` has not run.
 """
@@ -27,9 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, io, pose_metrics
-from manifoldneus.artifacts import CAMERAS_PLOT, SCHEDULE_PLOT, load_views_meta  # build_report's `artifacts` is the folder
-from manifoldneus.scenes import SceneError, resolve_scene
+from manifoldneus.data import artifacts, io
+from manifoldneus.geometry import pose_metrics
+from manifoldneus.data.artifacts import CAMERAS_PLOT, SCHEDULE_PLOT, load_views_meta  # build_report's `artifacts` is the folder
+from manifoldneus.data.scenes import SceneError, resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, PipelineError
 from runner.store import Store
 
@@ -395,7 +396,7 @@ def section_systems(page: Page, systems: dict[str, Pointers], reference: tuple[P
 def section_viewer(page: Page, systems: dict[str, Pointers], scene: str) -> None:
     """The viewer page of each system that has exported its result, written beside the report
     (the same page as ``pipeline.py view``), and a link to it."""
-    from manifoldneus import viewer
+    from manifoldneus.output import viewer
 
     page.add("## Viewer", "")
     for name, ptr in systems.items():

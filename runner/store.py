@@ -13,8 +13,8 @@ import sys
 import time
 from pathlib import Path
 
-from manifoldneus.io import write_text_atomic
-from manifoldneus.scenes import resolve_scene
+from manifoldneus.data.io import write_text_atomic
+from manifoldneus.data.scenes import resolve_scene
 from runner.common import DEFAULT_ARTIFACTS, MANIFEST, PipelineError
 from runner.fingerprint import content_digest, sha256_of
 from runner.registry import load_stages

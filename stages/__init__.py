@@ -1,12 +1,12 @@
 """The pipeline's stages, in order. Each is one module; see docs/STAGES.md."""
 from manifoldneus.config import RunParams, SplitParams
-from manifoldneus.correspondence import CorrespondenceParams
-from manifoldneus.evaluation import MeshParams, NovelViewParams
-from manifoldneus.field import FieldParams
-from manifoldneus.gate import GateParams
-from manifoldneus.losses import LossParams
-from manifoldneus.render import RenderParams
-from manifoldneus.train import TrainParams
+from manifoldneus.sfm.correspondence import CorrespondenceParams
+from manifoldneus.output.evaluation import MeshParams, NovelViewParams
+from manifoldneus.neural.field import FieldParams
+from manifoldneus.neural.gate import GateParams
+from manifoldneus.neural.losses import LossParams
+from manifoldneus.neural.render import RenderParams
+from manifoldneus.neural.train import TrainParams
 
 STAGES = [
     "ingest",

@@ -3,7 +3,7 @@
 Pose initialisation (``anchors.pose_init``):
 - ``matches`` (default): the front-end's keypoints and verified matches of the anchors (and of the
   views that bridge them) handed to COLMAP's incremental mapper and bundle adjustment, then the
-  unit-sphere gauge (:func:`manifoldneus.pose_init.init_from_matches`); COLMAP's log goes to log.txt;
+  unit-sphere gauge (:func:`manifoldneus.sfm.pose_init.init_from_matches`); COLMAP's log goes to log.txt;
 - ``identity``: every anchor at one canonical pose looking at the origin (the paper's wording);
 - ``reference``: the pycolmap reference poses (the `neus-colmap` preset), gauged the same way;
 - ``input``: the poses of the scene's own COLMAP model (``sparse/0`` beside ``images/``), gauged the same way,
@@ -27,7 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, io, mavos, pose_init, posefree, sfm
+from manifoldneus.data import artifacts, io
+from manifoldneus.scheduling import mavos
+from manifoldneus.sfm import pose_init, mapper as sfm
+from manifoldneus import posefree
 from manifoldneus.config import ParamError, param
 
 
@@ -94,11 +97,11 @@ class Params:
                                 "(the object in the unit sphere)", lo=0.1, hi=1.0)
     object_min_seen: float = param(0.5, "Without masks, the object's points are those at least this fraction of the "
                                    "registered views see in their frame (the common frustum); the gauge, the grid box "
-                                   "and the mesh's crop are taken from them (manifoldneus/object_region.py)",
+                                   "and the mesh's crop are taken from them (manifoldneus/geometry/object_region.py)",
                                    lo=0.0, hi=1.0)
     gauge_percentile: float = param(99.0, "The gauge's robust box: per axis, the points between this percentile and "
                                     "100 minus it (the foreground's with masks, else the common frustum's); its half "
-                                    "diagonal goes to gauge_radius (manifoldneus.cameras."
+                                    "diagonal goes to gauge_radius (manifoldneus.geometry.cameras."
                                     "gauge_from_points)", lo=50.0, hi=100.0)
     gauge_centre: str = param("box", "What goes to the gauge's origin: the middle of the points' robust box, or their "
                               "median (where the views see most) moved towards the box's middle only as far as keeps "
@@ -140,7 +143,7 @@ class InitEnv:
 def gauged(w2c: np.ndarray, points: np.ndarray, p: Params) -> np.ndarray:
     """Poses w2c [N,4,4] in the unit-sphere gauge of their SfM's points [P,3] (the camera centres where
     there are fewer than 3)."""
-    from manifoldneus import cameras
+    from manifoldneus.geometry import cameras
 
     pts = points if len(points) >= 3 else cameras.camera_centers(w2c)
     s, centre = cameras.gauge_from_points(pts, p.gauge_radius, centre=p.gauge_centre)
@@ -151,7 +154,7 @@ def reference_poses(reference_dir, p: Params) -> tuple[np.ndarray, np.ndarray]:
     """pycolmap's poses in the unit-sphere gauge of its own points; (w2c [N,4,4], registered [N])."""
     import pycolmap
 
-    from manifoldneus import cameras
+    from manifoldneus.geometry import cameras
 
     ref = artifacts.load_reference_poses(reference_dir)
     if not ref["registered"].any():
@@ -232,8 +235,8 @@ def initial_poses(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int]
 
 def sight_lines(res: pose_init.InitResult) -> np.ndarray:
     """[O,2,3]: per observation of the reconstruction's points by a placed view, its camera centre and the
-    point (gauge frame): the segment between them is free space (:class:`manifoldneus.losses.SightLines`)."""
-    from manifoldneus.cameras import camera_centers
+    point (gauge frame): the segment between them is free space (:class:`manifoldneus.neural.losses.SightLines`)."""
+    from manifoldneus.geometry.cameras import camera_centers
 
     row = {v: k for k, v in enumerate(res.view_ids)}
     rows = np.array([row[int(v)] for v in res.obs_view], int)
@@ -249,7 +252,7 @@ def lines_of_sight(env: InitEnv, res: pose_init.InitResult, calibration: pose_in
     own = sight_lines(res)
     if p.sight_lines_from != "calibration" or calibration is None:
         return own
-    from manifoldneus import cameras
+    from manifoldneus.geometry import cameras
 
     row = {v: k for k, v in enumerate(calibration.view_ids)}
     common = [(row[v], k) for k, v in enumerate(res.view_ids) if v in row and res.placed[k] and calibration.placed[row[v]]]
@@ -272,7 +275,7 @@ def lines_of_sight(env: InitEnv, res: pose_init.InitResult, calibration: pose_in
 
 def estimated_intrinsics(inputs: posefree.SceneInputs, res: pose_init.InitResult) -> tuple[np.ndarray, np.ndarray]:
     """(K [N,3,3], lens distortion [N,4]) of every view: what the reconstruction ``res`` estimated for its
-    placed views, given to every view of the same camera (:func:`manifoldneus.sfm.shared_K`)."""
+    placed views, given to every view of the same camera (:func:`manifoldneus.sfm.mapper.shared_K`)."""
     placed = [res.view_ids[k] for k in np.flatnonzero(res.placed)]
     K = sfm.shared_K(inputs.views.K, inputs.sizes, placed, res.K[res.placed])
     distortion = sfm.shared_K(inputs.views.K, inputs.sizes, placed, res.distortion[res.placed],
@@ -379,7 +382,7 @@ def init_views(anchors: list[int], W: np.ndarray, trainable, min_matches: int) -
 
 
 def perturbed(w2c: np.ndarray, p: Params, seed: int) -> np.ndarray:
-    from manifoldneus import cameras
+    from manifoldneus.geometry import cameras
 
     distance = float(np.linalg.norm(cameras.camera_centers(w2c), axis=1).mean())
     return cameras.perturb_w2c(w2c, tuple(p.perturb_rot_deg), p.perturb_centre_frac * distance,

@@ -2,7 +2,7 @@
 
 ``W[i, j] = n_ij``, the number of verified inlier matches of pair (i, j) (symmetric, zero
 diagonal); pairs below ``min_inliers`` get ``n_ij := 0``. ``c_i = sum_j W_ij`` is the cumulative
-count. Connected components of the graph W > 0, largest first. The maths: ``manifoldneus/mavos.py``.
+count. Connected components of the graph W > 0, largest first. The maths: ``manifoldneus/scheduling/mavos.py``.
 
 Outputs:
 
@@ -21,9 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, mavos
+from manifoldneus.data import artifacts
+from manifoldneus.scheduling import mavos
 from manifoldneus.config import param
-from manifoldneus.io import save_figure, save_json
+from manifoldneus.data.io import save_figure, save_json
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """evaluate: pose errors after every round (and of the initial poses), geometry, novel views.
 
 - Poses: Sim3 (Umeyama on camera centres) alignment to GT, rotation / centre errors, PRE_r/PRE_t
-  (:mod:`manifoldneus.pose_metrics`), for the initial anchor poses, the anchor round and every
+  (:mod:`manifoldneus.geometry.pose_metrics`), for the initial anchor poses, the anchor round and every
   successor round, over the views optimised in that round.
 - Geometry: Chamfer of the final mesh (mapped into the GT frame by the final Sim3) against the
   exact surface (synthetic scenes: the observed part of it), or else against the mesh of the
@@ -19,7 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import artifacts, cameras, evaluation, io, meshing, metrics, pose_metrics
+from manifoldneus.data import artifacts, io
+from manifoldneus.geometry import cameras, pose_metrics
+from manifoldneus.output import evaluation, meshing, metrics
 from manifoldneus.config import holdout_mask, param
 
 
@@ -174,7 +176,7 @@ def run(ctx) -> None:
     pred = al["s"] * pred @ np.asarray(al["R"]).T + np.asarray(al["t"])
     ref_label, ref_pts = None, None
     if gt_meta.get("has_surface"):
-        from manifoldneus import synthetic
+        from manifoldneus.data import synthetic
 
         surf = gt["surface_points"]
         views = artifacts.load_views(ctx.input("ingest"), K=gt.get("K"))

@@ -2,7 +2,7 @@
 
 Evaluates the pycolmap ``reference`` stage now; :func:`evaluate_pose_artifact` is the reusable
 entry point for any artifact holding ``poses.zarr`` (``w2c`` [N,4,4], optional ``registered`` bool
-[N]; non-finite poses count as missing). Metric definitions: ``manifoldneus/pose_metrics.py``
+[N]; non-finite poses count as missing). Metric definitions: ``manifoldneus/geometry/pose_metrics.py``
 (Sim3/Umeyama alignment of camera centres est -> GT, then rotation and centre errors; gauge-free
 relative pose errors PRE_r / PRE_t over all pairs of valid views).
 
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, io
+from manifoldneus.data import artifacts, io
 from manifoldneus.config import param
-from manifoldneus.pose_metrics import evaluate_poses, json_summary, plot_cameras
+from manifoldneus.geometry.pose_metrics import evaluate_poses, json_summary, plot_cameras
 
 
 @dataclass

@@ -28,7 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, cameras, evaluation, export, io, meshing
+from manifoldneus.data import artifacts, io
+from manifoldneus.geometry import cameras
+from manifoldneus.output import evaluation, export, meshing
 from manifoldneus.config import param
 
 

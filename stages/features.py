@@ -5,7 +5,7 @@ view ``v`` owns rows ``offsets[v]:offsets[v + 1]``):
 
 - ``offsets``      int64   [N+1]
 - ``keypoints``    float32 [T,2]   (x, y) in the project's pixel convention
-  (``manifoldneus/cameras.py``: centre of the top-left pixel at (0.5, 0.5)); OpenCV reports
+  (``manifoldneus/geometry/cameras.py``: centre of the top-left pixel at (0.5, 0.5)); OpenCV reports
   integer pixel centres, so 0.5 is added here. Usable with ``K`` as is.
 - ``scales``       float32 [T]     OpenCV ``KeyPoint.size`` in pixels (= 2 x the keypoint's
   Gaussian scale sigma in input-image pixels).
@@ -18,7 +18,7 @@ view ``v`` owns rows ``offsets[v]:offsets[v + 1]``):
   stored with zero keypoints and every later stage treats them as unmatched.
 
 Attributes: ``names`` (view names), ``n_views``, ``root_sift``, ``pixel_convention``.
-Use :func:`manifoldneus.artifacts.load_features` to read it back as per-view lists.
+Use :func:`manifoldneus.data.artifacts.load_features` to read it back as per-view lists.
 """
 from __future__ import annotations
 
@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts
+from manifoldneus.data import artifacts
 from manifoldneus.config import param
-from manifoldneus.io import save_arrays
+from manifoldneus.data.io import save_arrays
 
 
 @dataclass

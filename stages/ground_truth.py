@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from manifoldneus import artifacts, io, scenes
+from manifoldneus.data import artifacts, io, scenes
 from stages.ingest import Params, input_signature  # same section: what to read and how  # noqa: F401
 
 UPSTREAM = ("ingest",)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import artifacts, io, scenes
+from manifoldneus.data import artifacts, io, scenes
 from manifoldneus.config import param
 
 

@@ -34,7 +34,7 @@ Output ``matches.zarr`` (zarr v3 group), P pairs:
 - ``pose_valid``     bool    [P]
 
 Attributes: ``names``, ``n_views``, ``geometry`` ("essential" | "fundamental"),
-``pose_convention``. Read back with :func:`manifoldneus.artifacts.load_matches`.
+``pose_convention``. Read back with :func:`manifoldneus.data.artifacts.load_matches`.
 """
 from __future__ import annotations
 
@@ -47,10 +47,10 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus.cameras import pixels_to_normalised
+from manifoldneus.geometry.cameras import pixels_to_normalised
 from manifoldneus.config import param
-from manifoldneus import artifacts
-from manifoldneus.io import array_names, file_digest, load_arrays, save_arrays
+from manifoldneus.data import artifacts
+from manifoldneus.data.io import array_names, file_digest, load_arrays, save_arrays
 
 METHODS = {
     "magsac": "USAC_MAGSAC",

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from manifoldneus import artifacts, cameras, evaluation, export, io, object_region
+from manifoldneus.data import artifacts, io
+from manifoldneus.geometry import cameras, object_region
+from manifoldneus.output import evaluation, export
 
 Params = evaluation.MeshParams
 UPSTREAM = ("ingest", "anchors", "surface")

@@ -1,7 +1,7 @@
 """reference: the pycolmap incremental-SfM baseline on the same images.
 
 COLMAP's own SIFT extraction, exhaustive matching with its two-view verification, and
-incremental mapping (:mod:`manifoldneus.sfm`'s options), on the ingest's images. Intrinsics
+incremental mapping (:mod:`manifoldneus.sfm.mapper`'s options), on the ingest's images. Intrinsics
 (``intrinsics``): ``fixed`` holds the ingest's K (PINHOLE from K; nothing refined); ``refine``
 starts from the ingest's K (one camera for one K) and refines ``refine_intrinsics`` (focal length
 and principal point) by bundle adjustment; ``estimate`` starts from COLMAP's own guess and refines
@@ -34,9 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, sfm
+from manifoldneus.data import artifacts
+from manifoldneus.sfm import mapper as sfm
 from manifoldneus.config import ParamError, param
-from manifoldneus.io import native_output_to
+from manifoldneus.data.io import native_output_to
 
 
 @dataclass
@@ -201,7 +202,7 @@ def skip(ctx, names: list[str], K: np.ndarray) -> None:
 
 
 def run(ctx) -> None:
-    from manifoldneus.io import save_png
+    from manifoldneus.data.io import save_png
 
     p: Params = ctx.params
     src = Path(ctx.input("ingest"))

@@ -11,10 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import artifacts, evaluation, io, metrics
+from manifoldneus.data import artifacts, io
+from manifoldneus.output import evaluation, metrics
 from manifoldneus.config import holdout_mask, param
-from manifoldneus.train import Trainer, TrainRun
-from manifoldneus.views import Views
+from manifoldneus.neural.train import Trainer, TrainRun
+from manifoldneus.data.views import Views
 
 
 @dataclass

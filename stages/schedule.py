@@ -3,7 +3,7 @@
 Greedy picking of anchors (ceil(K% n) views, starting from the view of largest c_i) and successor
 rounds of M views (the last round takes the rest) by ``S_i = alpha L_i + (1 - alpha) C_i``;
 variants: coverage ``SE`` (spectral) | ``E`` (rows of W), strategy ``mavos`` | ``fps`` | ``uniform``.
-Every definition (normalisation, ties, S~, what uniform/fps record): ``manifoldneus/mavos.py``.
+Every definition (normalisation, ties, S~, what uniform/fps record): ``manifoldneus/scheduling/mavos.py``.
 Views outside the largest co-visibility component and the views held out for novel-view evaluation
 (section `split`) are not scheduled (role ``excluded``): K % counts the views that are trained.
 This stage never reads ground truth: its figure is drawn in spectral coordinates.
@@ -26,9 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import artifacts, io, mavos
+from manifoldneus.data import artifacts, io
+from manifoldneus.scheduling import mavos
 from manifoldneus.config import holdout_mask, param
-from manifoldneus.scenes import SceneError
+from manifoldneus.data.scenes import SceneError
 
 
 @dataclass
@@ -44,7 +45,7 @@ class Params:
     coverage: str = param("SE", "Coverage distance: SE (spectral embedding) | E (Euclidean on rows of W)",
                           choices=list(mavos.COVERAGES))
     s_tilde_from: str = param("score", "S~ from the score at pick time, min-max normalised per round (METHOD.md) | "
-                                       "rank: from the pick order (variant; see manifoldneus/mavos.py)",
+                                       "rank: from the pick order (variant; see manifoldneus/scheduling/mavos.py)",
                               choices=list(mavos.S_TILDE_FROM))
 
 

@@ -2,7 +2,7 @@
 
 Normalised Laplacian ``L = I - D^-1/2 W D^-1/2`` of the largest connected component of W, the
 eigenvectors of its ``d`` smallest non-trivial eigenvalues, rows scaled by ``D^-1/2``: one
-coordinate ``phi_i`` per view (maths and conventions: ``manifoldneus/mavos.py``).
+coordinate ``phi_i`` per view (maths and conventions: ``manifoldneus/scheduling/mavos.py``).
 
 Outputs:
 - ``spectral.zarr``: ``phi`` float64 [N,d] (0 for views outside the component), ``eigenvalues``
@@ -16,7 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from manifoldneus import artifacts, io, mavos
+from manifoldneus.data import artifacts, io
+from manifoldneus.scheduling import mavos
 from manifoldneus.config import param
 
 
@@ -110,7 +111,7 @@ def run(ctx) -> None:
         "excluded_views": excluded,
         "n_components": len(comps),
         "definition": "L = I - D^-1/2 W D^-1/2 on the largest component; phi = D^-1/2 u_k, k = 1..d; "
-                      "sign: largest-|entry| positive (manifoldneus/mavos.py)",
+                      "sign: largest-|entry| positive (manifoldneus/scheduling/mavos.py)",
     })
     plot_embedding(emb.phi, c, emb.in_component, emb.eigenvalues, ctx.out / "spectral.png",
                    title=f"{ctx.scene}: spectral embedding (d = {emb.d}), colour = c_i")

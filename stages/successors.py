@@ -13,7 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from manifoldneus import artifacts, io, pose_init, posefree
+from manifoldneus.data import artifacts, io
+from manifoldneus.sfm import pose_init
+from manifoldneus import posefree
 from manifoldneus.config import param
 
 
@@ -79,7 +81,7 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
     brought into the model's frame by the Sim3 that maps its placed views onto their optimised
     poses; views the SfM did not register are left out. Returns the poses by view and that Sim3 as a
     4x4 (the SfM's world -> the model's; None where fewer than 3 placed views registered)."""
-    from manifoldneus import cameras
+    from manifoldneus.geometry import cameras
 
     ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
     res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, sizes=inputs.sizes,

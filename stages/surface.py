@@ -18,9 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from manifoldneus import artifacts, cameras, io, object_region, posefree
+from manifoldneus.data import artifacts, io
+from manifoldneus.geometry import cameras, object_region
+from manifoldneus import posefree
 from manifoldneus.config import ParamError, param
-from manifoldneus.train import Trainer, TrainRun
+from manifoldneus.neural.train import Trainer, TrainRun
 
 
 @dataclass
@@ -53,7 +55,7 @@ OUTPUTS = (artifacts.POSES, artifacts.MODEL, artifacts.ROUND_META)
 
 def field_frame(result: dict, views, ids: np.ndarray, anchors_p, axes: str = "sfm") -> np.ndarray:
     """4x4 similarity from the rounds' frame to the field's: the anchors' gauge y = s (x - c)
-    (:func:`manifoldneus.cameras.gauge_from_points`) fitted to the last round's tracks over every posed
+    (:func:`manifoldneus.geometry.cameras.gauge_from_points`) fitted to the last round's tracks over every posed
     view, as the anchors pick theirs: with masks those most of whose observations fall inside the masks
     (those most views holding them see inside their masks also keep what lies behind the object, e.g. the
     table: scan65's object shrank 0.77x), without masks those in the views' common frustum; identity where

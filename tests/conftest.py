@@ -14,7 +14,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
-from manifoldneus import io, scenes  # noqa: E402
+from manifoldneus.data import io, scenes  # noqa: E402
 
 SHARED_DATA = scenes.default_data_root()
 needs_dtu = pytest.mark.skipif(not (SHARED_DATA / "dtu" / "scan24").is_dir(), reason="shared DTU data absent")
@@ -98,7 +98,7 @@ def tiny_run(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_synthetic():
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     return synthetic.make_scene(seed=1, n_views=6, resolution=64)
 

@@ -16,7 +16,7 @@ import pytest
 from test_end_to_end import TINY
 
 from bench import bench, match_precision, pose_observability, results_md
-from manifoldneus import synthetic
+from manifoldneus.data import synthetic
 
 POSE_ERRORS = ("rot_err_deg_mean", "rot_err_deg_median", "center_err_units_mean", "center_err_units_median",
                "pre_r_deg_mean", "pre_t_deg_mean")

@@ -65,7 +65,7 @@ def test_the_seeds_share_one_gt_pose_training_and_the_summary_counts_it_once(tmp
     """The GT-pose NeuS has a seed of its own (`reference_surface.seed`): runs of several seeds that read one
     training count it once (no "± 0.00" that reads as three trainings), a second training counts again."""
     from bench import results_md
-    from manifoldneus import io
+    from manifoldneus.data import io
 
     result = json.loads(results_md.refine_files(bench_refine.ROOT / "bench")[-1].read_text())
     runs = [dict(r) for r in result["scenes"]["scan24"]["runs"]]

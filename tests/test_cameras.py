@@ -2,7 +2,7 @@
 import numpy as np
 import torch
 
-from manifoldneus import cameras
+from manifoldneus.geometry import cameras
 
 
 def random_xi(n, scale=1.0, seed=0):
@@ -131,7 +131,7 @@ def test_undistortion_inverts_the_lens():
     pinhole render of the view (away from the border the lens leaves uncovered; within the resampling's blur)."""
     import cv2
 
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     K = synthetic.intrinsics(128, 128)
     lens = np.array([-1.0, 0.0, 0.002, 0.0])
@@ -162,7 +162,7 @@ def test_the_gauge_puts_a_lopsided_objects_whole_box_in_its_sphere():
     thinly fit the sphere too. Its centre is the box's middle, or (centre="median") the median where the box
     fits the unit sphere from there, moved towards the box's middle where it does not; a few far outliers
     (mismatches) move neither its centre nor its scale much."""
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     rng = np.random.default_rng(0)
     surface = synthetic.sample_surface(20000)  # [P,3], radius <= 0.6 about the origin

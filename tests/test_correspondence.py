@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from manifoldneus import cameras, correspondence, synthetic
-from manifoldneus.pose_init import PairMatch
-from manifoldneus.pose_metrics import evaluate_poses
+from manifoldneus.geometry import cameras
+from manifoldneus.sfm import correspondence
+from manifoldneus.data import synthetic
+from manifoldneus.sfm.pose_init import PairMatch
+from manifoldneus.geometry.pose_metrics import evaluate_poses
 
 
 @pytest.fixture(scope="module")

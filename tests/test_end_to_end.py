@@ -14,7 +14,9 @@ import pipeline
 import trimesh
 
 from manifoldneus.config import ParamError
-from manifoldneus import cameras, evaluation, io
+from manifoldneus.geometry import cameras
+from manifoldneus.output import evaluation
+from manifoldneus.data import io
 
 
 def current(artifacts, stage, preset=None):
@@ -69,7 +71,7 @@ def test_rounds_and_evaluation(tiny_run):
 
 
 def artifacts_round(artifacts, report, stage):
-    from manifoldneus import artifacts as rounds
+    from manifoldneus.data import artifacts as rounds
 
     return rounds.load_round(artifacts / "synthetic" / stage / report.fingerprints[stage] / "final")
 
@@ -248,7 +250,7 @@ def test_the_last_round_can_restart_every_view_from_the_matches_sfm(tiny_run, tm
     views from the SfM over every view, not where the previous round left them; none keeps them."""
     import shutil
 
-    from manifoldneus import artifacts as rounds
+    from manifoldneus.data import artifacts as rounds
 
     artifacts, report = tiny_run
     copy = tmp_path / "artifacts"
@@ -300,7 +302,7 @@ def test_a_video_of_an_object_comes_out_with_every_frame_posed(tmp_path):
     import pycolmap
     import trimesh
 
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     res, n = 192, 20
     scene = synthetic.make_scene(seed=0, n_views=n, resolution=res)
@@ -324,7 +326,7 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     """A folder of photos, no cameras, no masks (a user's capture): every stage runs, nothing is scored, and the
     summary and evaluation.json still say which camera the run estimated (the evaluate stage wrote nothing of it
     without ground truth)."""
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     from PIL import Image
 
@@ -413,7 +415,8 @@ def test_a_colmap_models_poses_seed_the_anchors(tmp_path):
     """The synthetic scene handed over as a COLMAP model whose poses are off the truth by a few degrees:
     `anchors.pose_init = input` starts every anchor at the model's pose (its rotation to the bit: the gauge
     only scales and shifts), not at the truth nor at an SfM of its own; a scene without a model says so."""
-    from manifoldneus import export, synthetic
+    from manifoldneus.output import export
+    from manifoldneus.data import synthetic
 
     scene = synthetic.make_scene(seed=0, n_views=20, resolution=128)
     rng = np.random.default_rng(0)

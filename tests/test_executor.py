@@ -14,7 +14,7 @@ import pytest
 
 import pipeline
 from bench import sweep
-from manifoldneus import io
+from manifoldneus.data import io
 from runner import executor
 from tests.test_pipeline import FAST_SYNTH
 from tests.test_sweep import SWEEP_TINY

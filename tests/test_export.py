@@ -1,4 +1,4 @@
-"""Exports (manifoldneus/export.py, stages/export.py): the COLMAP text model read back by pycolmap,
+"""Exports (manifoldneus/output/export.py, stages/export.py): the COLMAP text model read back by pycolmap,
 nerfstudio's transforms.json read back by export.read_transforms_json, both to 1e-9; the OpenGL
 camera convention; and the export stage's result on the tiny synthetic run, in the input's frame."""
 import importlib.util
@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 import pipeline
-from manifoldneus import artifacts, cameras, export, io
+from manifoldneus.data import artifacts, io
+from manifoldneus.geometry import cameras
+from manifoldneus.output import export
 
 
 def random_cameras(n, seed=0, spread=3.0):

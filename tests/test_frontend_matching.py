@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from manifoldneus import artifacts, io, mavos
-from manifoldneus.cameras import decompose_projection, look_at_w2c, rotation_angle_deg
+from manifoldneus.data import artifacts, io
+from manifoldneus.scheduling import mavos
+from manifoldneus.geometry.cameras import decompose_projection, look_at_w2c, rotation_angle_deg
 from stages import covisibility, features, matching, reference
 from tests.conftest import SHARED_DATA, needs_dtu
 

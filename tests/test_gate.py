@@ -3,7 +3,7 @@ import math
 
 import torch
 
-from manifoldneus.gate import GateParams, band_weights, barf_weights, base_progress
+from manifoldneus.neural.gate import GateParams, band_weights, barf_weights, base_progress
 
 L = 6
 T = 1000

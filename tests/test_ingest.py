@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 import pipeline
-from manifoldneus import cameras, io, scenes
+from manifoldneus.geometry import cameras
+from manifoldneus.data import io, scenes
 from manifoldneus.config import ParamError
-from manifoldneus.scenes import SceneError, read_ground_truth, read_views, resolve_scene
+from manifoldneus.data.scenes import SceneError, read_ground_truth, read_views, resolve_scene
 from stages.ingest import Params
 from tests.conftest import SHARED_DATA, needs_dtu
 
@@ -163,7 +164,7 @@ def test_empty_folder_has_no_layout(tmp_path):
 
 @pytest.mark.parametrize("view_stride", [1, 2])
 def test_synthetic_through_pipeline_and_gt_apart(artifacts, view_stride):
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     pipeline.run("synthetic-3", until="ground_truth", artifacts=artifacts,
                  overrides=["ingest.synthetic_views=5", "ingest.synthetic_resolution=48",
@@ -292,7 +293,7 @@ def test_neus_layout_with_an_images_folder(idr_folder, tiny_synthetic):
 
 
 def test_identical_photos_stop_at_covisibility(tmp_path, artifacts):
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     image = synthetic.make_scene(seed=1, n_views=6, resolution=96).images[0]
     folder = tmp_path / "same"
@@ -371,7 +372,7 @@ def test_a_photo_replaced_with_its_size_and_time_kept_changes_the_signature(plai
 
 def test_files_named_by_parameters_or_the_environment_count_by_content(tmp_path, monkeypatch):
     import stages.matching as matching
-    from manifoldneus import metrics
+    from manifoldneus.output import metrics
 
     monkeypatch.setenv("MANIFOLDNEUS_CACHE", str(tmp_path / "cache"))
     pairs = tmp_path / "pairs.txt"
@@ -395,7 +396,7 @@ def test_files_named_by_parameters_or_the_environment_count_by_content(tmp_path,
 def test_own_photos_hold_no_view_out_unless_asked(tmp_path, artifacts):
     """A plain folder of photos has no cameras to score held-out views: every photo is scheduled (and
     so posed and exported); split.holdout_without_cameras brings the held-out views back."""
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     scene = synthetic.make_scene(seed=3, n_views=12, resolution=96)
     folder = tmp_path / "capture"
@@ -416,7 +417,7 @@ def test_a_video_becomes_its_sharpest_frames(tmp_path, artifacts):
     blurred copy beside every sharp frame is never taken); no ground truth, every frame scheduled."""
     import cv2
 
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     scene = synthetic.make_scene(seed=2, n_views=10, resolution=96)
     clip = tmp_path / "turntable.mp4"
@@ -448,7 +449,7 @@ def test_known_lens_distortion_is_removed_at_ingest(tmp_path, artifacts):
     blurred: the lens's compression of the periphery loses the finest texture for good."""
     import cv2
 
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
 
     scene = synthetic.make_scene(seed=4, n_views=4, resolution=128)
     K, dist = scene.K[0], np.array([-1.0, 0.0, 0.002, 0.0])

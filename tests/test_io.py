@@ -3,7 +3,7 @@ import json
 
 import numpy as np
 
-from manifoldneus import io
+from manifoldneus.data import io
 
 
 def test_zarr_roundtrip_with_scalars_and_empty_arrays(tmp_path):

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from manifoldneus.mavos import (
+from manifoldneus.scheduling.mavos import (
     bottleneck_weight,
     connected_components,
     is_connected_subset,

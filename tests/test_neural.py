@@ -11,14 +11,14 @@ import pytest
 import torch
 
 from conftest import TEST_DEVICE, bitwise_on_cpu
-from manifoldneus.cameras import look_at_w2c
-from manifoldneus.field import FieldBase, FieldParams, make_field
-from manifoldneus.losses import LossParams, compute_losses
-from manifoldneus.meshing import cull_by_masks, cull_unseen, extract_mesh, preview_directions, render_preview
-from manifoldneus.metrics import chamfer, psnr, ssim
-from manifoldneus.rays import camera_rays, pixel_grid, sphere_bounds
-from manifoldneus.render import Background, RenderParams, SDFCache, render_image, render_rays
-from manifoldneus.train import TrainParams, Trainer, TrainRun, Views
+from manifoldneus.geometry.cameras import look_at_w2c
+from manifoldneus.neural.field import FieldBase, FieldParams, make_field
+from manifoldneus.neural.losses import LossParams, compute_losses
+from manifoldneus.output.meshing import cull_by_masks, cull_unseen, extract_mesh, preview_directions, render_preview
+from manifoldneus.output.metrics import chamfer, psnr, ssim
+from manifoldneus.geometry.rays import camera_rays, pixel_grid, sphere_bounds
+from manifoldneus.neural.render import Background, RenderParams, SDFCache, render_image, render_rays
+from manifoldneus.neural.train import TrainParams, Trainer, TrainRun, Views
 
 torch.set_num_threads(1)
 
@@ -169,7 +169,7 @@ def test_mask_culling_tolerance_scales_with_the_image_and_drops_a_loop_outside_t
     (scan24's floater above the roof) goes, and the same geometry behaves the same in 800 px images."""
     import trimesh
 
-    from manifoldneus.evaluation import MeshParams, image_px
+    from manifoldneus.output.evaluation import MeshParams, image_px
 
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     ring = np.linspace(0, 2 * np.pi, 24, endpoint=False)
@@ -313,7 +313,7 @@ def test_training_loss_falls_and_checkpoint_roundtrip(tmp_path, trained_tiny):
 
 
 def test_test_time_alignment_undoes_a_held_out_pose_error_against_the_frozen_field(trained_tiny):
-    from manifoldneus.evaluation import NovelViewParams, align_test_poses, novel_views
+    from manifoldneus.output.evaluation import NovelViewParams, align_test_poses, novel_views
 
     views, tr, _ = trained_tiny
     true_w2c = np.asarray(views.w2c, float)
@@ -329,7 +329,7 @@ def test_test_time_alignment_undoes_a_held_out_pose_error_against_the_frozen_fie
     p = NovelViewParams(align_steps=150, align_rays=512, align_lr=3e-3)
     aligned, moved = align_test_poses(tr, small, [1, 3], off, p)
 
-    from manifoldneus.rays import project
+    from manifoldneus.geometry.rays import project
 
     pts = torch.as_tensor(np.random.default_rng(0).uniform(-0.4, 0.4, (200, 3)))  # about the object
 
@@ -353,8 +353,8 @@ def test_test_time_alignment_undoes_a_held_out_pose_error_against_the_frozen_fie
 def test_a_rotation_only_polish_turns_a_view_back_and_keeps_every_camera_centre(trained_tiny):
     import roma
 
-    from manifoldneus import cameras
-    from manifoldneus.pose_alignment import align_poses
+    from manifoldneus.geometry import cameras
+    from manifoldneus.neural.pose_alignment import align_poses
 
     views, tr, _ = trained_tiny
     true = torch.as_tensor(np.asarray(views.w2c)[:, :3, :4], dtype=torch.float32)  # [N,3,4]
@@ -377,7 +377,7 @@ def test_poses_align_against_the_paper_profiles_neus_mlp_field():
     """The paper profile's field (NeuS's MLP, whose colour reads the SDF's normals) under the NeuS up-sampler:
     the render stays differentiable in the poses through the normals' inner gradient (it once freed the
     SDF's graph, and the test-time alignment failed with 'backward through the graph a second time')."""
-    from manifoldneus.pose_alignment import align_poses
+    from manifoldneus.neural.pose_alignment import align_poses
 
     views = synthetic_views(n=4, size=16)
     fp = FieldParams(kind="mlp", pos_bands=2, mlp_width=16, mlp_depth=2, mlp_skip=-1, color_width=16, color_depth=1,
@@ -517,7 +517,7 @@ def test_band_weights_interface():
 def test_each_kernel_source_builds_in_its_own_folder(tmp_path, monkeypatch):
     """Two checkouts with different kernel sources on one machine (a worktree of older code measured
     beside the current one) must not share, and fight over, one build folder."""
-    from manifoldneus import grid_encoding
+    from manifoldneus.neural import grid_encoding
 
     here = grid_encoding._build_dir()
     edited = tmp_path / "grid_encoding.cpp"
@@ -536,7 +536,7 @@ def test_a_build_killed_half_way_does_not_hang_later_processes(tmp_path):
     import subprocess
     import sys
 
-    from manifoldneus import grid_encoding
+    from manifoldneus.neural import grid_encoding
 
     if grid_encoding.fused_kernel() is None:
         pytest.fail(f"the fused grid kernel did not build: {grid_encoding.fused_unavailable_reason()}")
@@ -544,7 +544,7 @@ def test_a_build_killed_half_way_does_not_hang_later_processes(tmp_path):
     built = grid_encoding._build_dir()
     shutil.copytree(built, cache / built.name, ignore=shutil.ignore_patterns("lock", "build.flock"))
     (cache / built.name / "lock").touch()  # what the interrupted build left
-    code = ("from manifoldneus import grid_encoding as g; "
+    code = ("from manifoldneus.neural import grid_encoding as g; "
             "assert g.fused_kernel() is not None, g.fused_unavailable_reason()")
     env = {**os.environ, "MANIFOLDNEUS_CACHE": str(cache)}
     done = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).parent.parent, env=env, timeout=120,
@@ -555,7 +555,7 @@ def test_a_build_killed_half_way_does_not_hang_later_processes(tmp_path):
 def test_the_fused_grid_kernel_computes_what_grid_sample_computes(caplog):
     """Values and gradients (tables and points) of the compiled CPU kernel equal grid_sample's, points
     outside the tables included; a field asking for autograd SDF gradients keeps grid_sample."""
-    from manifoldneus import grid_encoding
+    from manifoldneus.neural import grid_encoding
 
     if grid_encoding.fused_kernel() is None:
         pytest.fail(f"the fused grid kernel did not build: {grid_encoding.fused_unavailable_reason()}")
@@ -680,7 +680,7 @@ def test_truncated_checkpoint_is_discarded_not_fatal(tmp_path, caplog):
 
 
 def test_pose_corrections_own_which_views_learn_and_from_when():
-    from manifoldneus.pose_correction import PoseCorrections
+    from manifoldneus.neural.pose_correction import PoseCorrections
 
     w2c = torch.as_tensor(np.stack([look_at_w2c(np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 1.0]), np.zeros(3),
                                                 np.array([0.0, 0.0, 1.0]))[:3] for a in np.linspace(0, 6, 5)]),
@@ -704,8 +704,8 @@ def test_pose_corrections_own_which_views_learn_and_from_when():
 
 
 def test_rotation_only_corrections_turn_views_and_keep_every_camera_centre():
-    from manifoldneus.cameras import camera_centers, rotation_angle_deg
-    from manifoldneus.pose_correction import PoseCorrections
+    from manifoldneus.geometry.cameras import camera_centers, rotation_angle_deg
+    from manifoldneus.neural.pose_correction import PoseCorrections
 
     w2c = torch.as_tensor(np.stack([look_at_w2c(np.array([3.0 * np.cos(a), 3.0 * np.sin(a), 1.0]), np.zeros(3),
                                                 np.array([0.0, 0.0, 1.0]))[:3] for a in np.linspace(0, 6, 4)]),
@@ -756,7 +756,7 @@ def test_a_checkpoint_that_does_not_fit_leaves_the_previous_one(tmp_path, monkey
 def test_the_narrow_band_meshes_what_the_whole_grid_meshes_with_far_fewer_evaluations(resolution):
     """A torus's distance field: the grid evaluated only near its surface (from every 8th node, split level
     by level) gives the dense grid's mesh, also where the grid's cells do not divide by the coarse step."""
-    from manifoldneus import meshing
+    from manifoldneus.output import meshing
 
     calls = []
 
@@ -780,7 +780,7 @@ def test_an_empty_mesh_reads_back_as_an_empty_mesh(tmp_path):
     that file back as a mesh with no faces (trimesh alone reads it as a Scene, which has none)."""
     import trimesh
 
-    from manifoldneus.meshing import load_mesh, save_ply
+    from manifoldneus.output.meshing import load_mesh, save_ply
 
     save_ply(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)), tmp_path / "mesh.ply")
     mesh = load_mesh(tmp_path / "mesh.ply")
@@ -791,7 +791,7 @@ def test_hashed_levels_read_the_rows_instant_ngp_s_hash_names():
     """A hashed level [T,C] reads, at cell (x, y, z), row (x ^ 2654435761 y ^ 805459861 z) mod T (uint32):
     both kernels equal grid_sample on the dense table that hash spells out (written here with Python's
     integers), and their gradients equal each other, points outside the grid included."""
-    from manifoldneus import grid_encoding
+    from manifoldneus.neural import grid_encoding
 
     if grid_encoding.fused_kernel() is None:
         pytest.fail(f"the fused grid kernel did not build: {grid_encoding.fused_unavailable_reason()}")

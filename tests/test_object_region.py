@@ -9,7 +9,9 @@ import trimesh
 from scipy.spatial import cKDTree
 
 import pipeline
-from manifoldneus import artifacts, cameras, io, meshing, object_region, pose_metrics, synthetic
+from manifoldneus.data import artifacts, io, synthetic
+from manifoldneus.geometry import cameras, object_region, pose_metrics
+from manifoldneus.output import meshing
 from stages import mesh as mesh_stage
 from tests.conftest import TINY
 
@@ -218,7 +220,7 @@ def test_sight_lines_clear_what_stands_between_a_camera_and_its_points():
     pushed out by its gradient); the ball itself, and a blob behind it, are not."""
     import torch
 
-    from manifoldneus.losses import SightLines
+    from manifoldneus.neural.losses import SightLines
 
     rng = np.random.default_rng(0)
     centres = 3.0 * np.array([[0, 0, -1], [0, -0.6, -0.8], [0.6, 0, -0.8], [-0.6, 0, -0.8]])  # [C,3]

@@ -13,7 +13,7 @@ import runner.common
 import runner.fingerprint
 import runner.store
 from manifoldneus.config import ParamError
-from manifoldneus.scenes import SceneError
+from manifoldneus.data.scenes import SceneError
 from tests.conftest import TINY, needs_dtu
 
 FAST_SYNTH = ["ingest.synthetic_views=6", "ingest.synthetic_resolution=64", "ingest.synthetic_surface_points=2000"]
@@ -113,18 +113,18 @@ def test_code_change_makes_stage_stale(artifacts, monkeypatch):
 def test_code_hash_covers_package_modules():
     stages = pipeline.load_stages()
     files = {p.relative_to(pipeline.ROOT).as_posix() for p in runner.fingerprint._code_files(stages["ingest"].module)}
-    assert {"stages/ingest.py", "manifoldneus/scenes.py", "manifoldneus/io.py", "manifoldneus/config.py",
-            "manifoldneus/cameras.py"} <= files
+    assert {"stages/ingest.py", "manifoldneus/data/scenes.py", "manifoldneus/data/io.py", "manifoldneus/config.py",
+            "manifoldneus/geometry/cameras.py"} <= files
     # imported only inside functions (scenes.py, evaluate.py): still the stages' code
-    assert "manifoldneus/synthetic.py" in files
+    assert "manifoldneus/data/synthetic.py" in files
     evaluate = {p.name for p in runner.fingerprint._code_files(stages["evaluate"].module)}
     assert "synthetic.py" in evaluate
     # ...but not modules the stage never reaches, nor the stage registry
     assert "train.py" not in files and "stages/__init__.py" not in files
     # the C++ a reached module compiles at run time is part of the stage's code
     anchors = {p.relative_to(pipeline.ROOT).as_posix() for p in runner.fingerprint._code_files(stages["anchors"].module)}
-    assert "manifoldneus/csrc/grid_encoding.cpp" in anchors and "manifoldneus/csrc/grid_encoding.cpp" not in files
-    # the front end writes and reads through manifoldneus.artifacts, which must not reach the trainer
+    assert "manifoldneus/neural/csrc/grid_encoding.cpp" in anchors and "manifoldneus/neural/csrc/grid_encoding.cpp" not in files
+    # the front end writes and reads through manifoldneus.data.artifacts, which must not reach the trainer
     covisibility = {p.name for p in runner.fingerprint._code_files(stages["covisibility"].module)}
     assert "artifacts.py" in covisibility and "train.py" not in covisibility
 
@@ -138,7 +138,7 @@ def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_p
     pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
     assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
 
-    generator = copy / "manifoldneus" / "synthetic.py"
+    generator = copy / "manifoldneus" / "data" / "synthetic.py"
     generator.write_text(generator.read_text() + "\n# an edit to the scene generator\n")
     st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
     assert st["ingest"][0] == "stale" and any("code" in r for r in st["ingest"][1])
@@ -656,6 +656,34 @@ def test_imports_point_one_way():
             module = ".".join(path.relative_to(pipeline.ROOT).with_suffix("").parts).removesuffix(".__init__")
             names = runner.fingerprint._imported_names(path, module)
             assert not [n for n in names if n.split(".")[0] in forbidden], (path, sorted(names))
+    # Inside the library: a sub-package imports itself, config and the floors below it only (the table;
+    # docs/ARCHITECTURE.md, "The library"). geometry and data are the bottom floor together.
+    may_import = {
+        "geometry": {"data"},
+        "data": {"geometry"},
+        "neural": {"geometry", "data"},
+        "sfm": {"geometry", "data", "scheduling"},
+        "scheduling": set(),
+        "output": {"geometry", "neural", "data"},
+        "config": set(),
+        "__init__": set(),
+        "posefree": {"geometry", "neural", "sfm", "scheduling", "data", "output"},
+    }
+    library = pipeline.ROOT / "manifoldneus"
+    crossings = set()
+    for path in sorted(library.rglob("*.py")):
+        rel = path.relative_to(library)
+        floor = rel.parts[0] if len(rel.parts) > 1 else rel.stem
+        assert floor in may_import, f"{rel}: a module outside the sub-packages"
+        module = ".".join(("manifoldneus", *rel.with_suffix("").parts)).removesuffix(".__init__")
+        for name in runner.fingerprint._imported_names(path, module):
+            parts = name.split(".")
+            if parts[0] != "manifoldneus" or len(parts) < 2 or parts[1] not in may_import:
+                continue  # outside the library, or the package itself (its __version__)
+            top = parts[1] in ("config", "posefree")  # else a sub-package: its module's name comes with it
+            if parts[1] not in (floor, "config", *may_import[floor]) and (top or len(parts) > 2):
+                crossings.add((module, ".".join(parts[:2] if top else parts[:3])))
+    assert not crossings, sorted(crossings)
 
 
 def test_no_module_edits_sys_path():
@@ -671,12 +699,12 @@ def test_no_module_edits_sys_path():
 
 
 def test_shared_artifacts_are_named_by_their_readers_only():
-    """The files several stages read are named in manifoldneus/artifacts.py only (its constants and
+    """The files several stages read are named in manifoldneus/data/artifacts.py only (its constants and
     readers, as hloc's one io module): no other module of the package, stage, runner or bench spells
     their names, so renaming one is a one-line change and no second reader can drift from the first."""
     import re
 
-    from manifoldneus import artifacts
+    from manifoldneus.data import artifacts
 
     # every file name artifacts.py defines, a new one included, and the rounds' folders in any spelling
     names = [v for k, v in vars(artifacts).items() if k.isupper() and isinstance(v, str) and "." in v]
@@ -684,7 +712,7 @@ def test_shared_artifacts_are_named_by_their_readers_only():
     assert len(names) > 20 and artifacts.MESH in names
     round_literal = re.compile(r"""["']round_[0-9{*]|/ *["']final["']""")  # "final" alone is also a JSON key
     for package in ("manifoldneus", "stages", "runner", "bench"):
-        for path in sorted((pipeline.ROOT / package).glob("*.py")):
+        for path in sorted((pipeline.ROOT / package).rglob("*.py")):
             if path.name == "artifacts.py":
                 continue
             text = path.read_text()
@@ -772,7 +800,7 @@ def test_every_expected_failure_is_one_line(artifacts, capsys, monkeypatch):
     # a photo that cannot be read is an input: the fix is the photo's, not the artifacts folder's
     import numpy as np
 
-    from manifoldneus import io, scenes
+    from manifoldneus.data import io, scenes
 
     photos = artifacts.parent / "photos"
     photos.mkdir()

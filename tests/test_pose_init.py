@@ -1,4 +1,4 @@
-"""Pose initialisation (manifoldneus/pose_init.py) on the synthetic scene with exact ground truth.
+"""Pose initialisation (manifoldneus/sfm/pose_init.py) on the synthetic scene with exact ground truth.
 
 One session fixture renders a 20-view 192 px scene and runs the project's SIFT + verified
 matching on it; GT poses and depth are used only to evaluate (and, for the successor test, as
@@ -10,17 +10,17 @@ import json
 import numpy as np
 import pytest
 
-from manifoldneus import pose_init as PI
-from manifoldneus import sfm
-from manifoldneus.cameras import camera_centers, lift_points, look_at_w2c, project_points, rotation_angle_deg, transform_w2c
-from manifoldneus.pose_metrics import evaluate_poses
+from manifoldneus.sfm import pose_init as PI
+from manifoldneus.sfm import mapper as sfm
+from manifoldneus.geometry.cameras import camera_centers, lift_points, look_at_w2c, project_points, rotation_angle_deg, transform_w2c
+from manifoldneus.geometry.pose_metrics import evaluate_poses
 
 N_VIEWS, RES = 20, 192
 
 
 @pytest.fixture(scope="session")
 def scene_matches():
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
     from stages.features import extract_all
     from stages.matching import exhaustive_pairs, match_pairs
 
@@ -71,7 +71,7 @@ def test_pair_convention_matches_ground_truth(scene_matches):
 
 
 def test_lift_points_roundtrip():
-    from manifoldneus.synthetic import camera_poses, intrinsics
+    from manifoldneus.data.synthetic import camera_poses, intrinsics
 
     K, w2c = intrinsics(100, 100), camera_poses(3)[1]
     X = np.array([[0.1, 0.2, 0.0], [-0.3, 0.1, 0.2]])
@@ -295,7 +295,7 @@ def test_principal_point_off_the_centre_is_refined():
     """Photos whose principal point is not the image centre (DTU's is 12 px off), started at the centre: with
     the principal point refined it is found and the rotations are as good as with the true K; with the focal
     length alone refined, the offset turns every camera by ~1 deg."""
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
     from stages.features import extract_all
     from stages.matching import exhaustive_pairs, match_pairs
 
@@ -329,7 +329,7 @@ def test_principal_point_at_the_centre_and_no_lens_distortion_are_not_freed():
     """The same test on pinhole photos whose principal point is the centre: freeing either the radial
     distortion or the principal point does not lower the reprojection error significantly, so both stay
     where they started (and the images would not be resampled)."""
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
     from stages.features import extract_all
     from stages.matching import exhaustive_pairs, match_pairs
 
@@ -350,7 +350,7 @@ def test_focal_length_is_refined_from_a_wrong_guess():
     """One shared camera whose focal length starts 30 % off: COLMAP's bundle adjustment brings it
     back within 2 % and the poses stay within 2x those of the calibrated initialisation. (At 384 px:
     at 192 px SIFT's keypoints on this narrow-angle scene leave the focal length 2.3 % short.)"""
-    from manifoldneus import synthetic
+    from manifoldneus.data import synthetic
     from stages.features import extract_all
     from stages.matching import exhaustive_pairs, match_pairs
 

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from manifoldneus.cameras import camera_centers, look_at_w2c, sim3_matrix, transform_w2c
-from manifoldneus.pose_metrics import evaluate_poses, json_summary, plot_cameras, relative_pose_errors
+from manifoldneus.geometry.cameras import camera_centers, look_at_w2c, sim3_matrix, transform_w2c
+from manifoldneus.geometry.pose_metrics import evaluate_poses, json_summary, plot_cameras, relative_pose_errors
 
 
 def ring_rig(n=12, radius=3.0, seed=0):
@@ -132,7 +132,7 @@ def test_too_few_views():
 
 
 def test_reference_with_too_few_registered_views_is_reported_not_fatal(tmp_path):
-    from manifoldneus import io
+    from manifoldneus.data import io
     from stages.evaluate_poses import evaluate_pose_artifact
 
     gt_dir, est_dir = tmp_path / "gt", tmp_path / "est"

@@ -4,12 +4,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from manifoldneus import cameras, synthetic
-from manifoldneus.field import FieldParams
-from manifoldneus.losses import LossParams
-from manifoldneus.pose_metrics import evaluate_poses
-from manifoldneus.render import RenderParams
-from manifoldneus.train import TrainParams, Trainer, TrainRun, Views
+from manifoldneus.geometry import cameras
+from manifoldneus.data import synthetic
+from manifoldneus.neural.field import FieldParams
+from manifoldneus.neural.losses import LossParams
+from manifoldneus.geometry.pose_metrics import evaluate_poses
+from manifoldneus.neural.render import RenderParams
+from manifoldneus.neural.train import TrainParams, Trainer, TrainRun, Views
 
 
 def perturbed(w2c: np.ndarray, rot_deg: float, trans_sigma: float, seed: int = 0) -> np.ndarray:

@@ -11,7 +11,7 @@ from test_end_to_end import TINY, current
 
 import pipeline
 from runner import report
-from manifoldneus import io
+from manifoldneus.data import io
 
 
 def test_overlap_groups_and_top_p_share_by_hand():

@@ -8,10 +8,10 @@ import pytest
 import torch
 
 import pipeline
-from manifoldneus import artifacts as readers
-from manifoldneus import io
+from manifoldneus.data import artifacts as readers
+from manifoldneus.data import io
 from conftest import bitwise_on_cpu
-from manifoldneus.train import Trainer
+from manifoldneus.neural.train import Trainer
 from tests.test_end_to_end import TINY
 
 pytestmark = bitwise_on_cpu

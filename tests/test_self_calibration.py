@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import pipeline
-from manifoldneus import cameras, io, scenes, synthetic
+from manifoldneus.geometry import cameras
+from manifoldneus.data import io, scenes, synthetic
 from tests.test_end_to_end import TINY
 
 RES = 256  # the focal length is weakly determined at this narrow field of view: 192 px keypoints leave it 2.2 % off

@@ -1,10 +1,10 @@
-"""Tests of the synthetic scene generator (manifoldneus.synthetic)."""
+"""Tests of the synthetic scene generator (manifoldneus.data.synthetic)."""
 import cv2
 import numpy as np
 import pytest
 
-from manifoldneus import synthetic as syn
-from manifoldneus.cameras import camera_centers, look_at_w2c
+from manifoldneus.data import synthetic as syn
+from manifoldneus.geometry.cameras import camera_centers, look_at_w2c
 
 
 @pytest.fixture(scope="module")
@@ -194,7 +194,7 @@ def test_deterministic():
 
 
 def test_look_at_shows_world_up_at_the_image_top():
-    from manifoldneus.cameras import look_at_w2c
+    from manifoldneus.geometry.cameras import look_at_w2c
 
     w2c = look_at_w2c(np.array([0.0, -3.0, 0.0]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
     # camera y (image down) points to world -z; camera x (image right) to world +x

@@ -1,4 +1,4 @@
-"""The viewer page (manifoldneus/viewer.py, `pipeline.py view`): its geometry helpers, its data
+"""The viewer page (manifoldneus/output/viewer.py, `pipeline.py view`): its geometry helpers, its data
 against the tiny run's artifacts, and the page rendered in headless Chromium."""
 import html
 import json
@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 import pipeline
-from manifoldneus import artifacts, cameras, io, viewer
+from manifoldneus.data import artifacts, io
+from manifoldneus.geometry import cameras
+from manifoldneus.output import viewer
 
 
 def test_decimate_keeps_the_surface_within_a_cell_and_averages_colours():

@@ -11,9 +11,9 @@ Hooks for the pose-free method:
   (the MaVOS-gated BARF schedule); without it a global BARF ramp over ``c2f_iters`` applies
   (0 = all bands on from the start).
 * ``learn_poses``: the views ``pose_views`` (default: all training views) learn se(3) corrections
-  from step ``pose_start`` on (:class:`manifoldneus.pose_correction.PoseCorrections`, ``self.cams``).
+  from step ``pose_start`` on (:class:`manifoldneus.neural.pose_correction.PoseCorrections`, ``self.cams``).
 * ``pose_loss(w2c [N,3,4], rng, step) -> scalar | None`` with a ``weight`` attribute: a term on the poses
-  alone (the verified matches' tracks or epipolar errors, :mod:`manifoldneus.correspondence`),
+  alone (the verified matches' tracks or epipolar errors, :mod:`manifoldneus.sfm.correspondence`),
   added to the loss while poses are learned.
 
 Reproducibility: one seed drives every random draw (ray batches from ``self.rng``, sample jitter
@@ -45,13 +45,13 @@ import torch
 from torch.profiler import record_function
 
 from manifoldneus.config import param
-from manifoldneus.field import FieldParams, make_field
-from manifoldneus.gate import barf_weights
-from manifoldneus.pose_correction import PoseCorrections
-from manifoldneus.losses import LossParams, compute_losses
-from manifoldneus.rays import camera_rays, project
-from manifoldneus.render import Background, RenderParams, SDFCache, render_image, render_rays, resolve_background
-from manifoldneus.views import Views
+from manifoldneus.neural.field import FieldParams, make_field
+from manifoldneus.neural.gate import barf_weights
+from manifoldneus.neural.pose_correction import PoseCorrections
+from manifoldneus.neural.losses import LossParams, compute_losses
+from manifoldneus.geometry.rays import camera_rays, project
+from manifoldneus.neural.render import Background, RenderParams, SDFCache, render_image, render_rays, resolve_background
+from manifoldneus.data.views import Views
 
 log = logging.getLogger("manifoldneus.train")
 

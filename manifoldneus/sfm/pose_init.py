@@ -1,7 +1,7 @@
 """Pose initialisation (METHOD.md "Pose initialisation"): pure geometry, no neural code.
 
-The method's own logic around COLMAP (:mod:`manifoldneus.sfm` does the structure from motion),
-all returning world-to-camera poses in the conventions of :mod:`manifoldneus.cameras` (OpenCV
+The method's own logic around COLMAP (:mod:`manifoldneus.sfm.mapper` does the structure from motion),
+all returning world-to-camera poses in the conventions of :mod:`manifoldneus.geometry.cameras` (OpenCV
 camera frame, ``w2c``, pixel centres at +0.5):
 
 * :func:`init_from_matches` ("matches", the default for the anchors): our verified matches of the
@@ -9,7 +9,7 @@ camera frame, ``w2c``, pixel centres at +0.5):
   a COLMAP database; COLMAP's incremental mapper and bundle adjustment pose them (intrinsics fixed
   or refined); then the gauge: a similarity that puts the middle of the points' robust box at the origin
   (or their median, ``gauge_centre``) and scales the box's half diagonal
-  (:func:`manifoldneus.cameras.gauge_from_points`; the foreground points when masks exist) to
+  (:func:`manifoldneus.geometry.cameras.gauge_from_points`; the foreground points when masks exist) to
   ``gauge_radius`` (0.8), so the object sits inside the unit sphere. Views COLMAP cannot register get a
   registered neighbour's pose, and the reason.
 * :func:`identity_init` ("identity", the paper's wording): every view at the same canonical pose.
@@ -32,9 +32,10 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from . import object_region, sfm
-from .cameras import gauge_from_points, lift_points, sim3_matrix, to_4x4, transform_w2c
-from .mavos import covisibility_matrix
+from manifoldneus.geometry import object_region
+from manifoldneus.sfm import mapper as sfm
+from manifoldneus.geometry.cameras import gauge_from_points, lift_points, sim3_matrix, to_4x4, transform_w2c
+from manifoldneus.scheduling.mavos import covisibility_matrix
 
 # --------------------------------------------------------------------------- inputs
 
@@ -67,7 +68,7 @@ def pairs_from_matches(arrays: dict, min_inliers: int = 1) -> list[PairMatch]:
 
 
 def covisibility_from_pairs(pairs: Sequence, n_views: int) -> np.ndarray:
-    """W [N,N]: :func:`~manifoldneus.mavos.covisibility_matrix` of the pairs' verified inlier counts."""
+    """W [N,N]: :func:`~manifoldneus.scheduling.mavos.covisibility_matrix` of the pairs' verified inlier counts."""
     return covisibility_matrix(n_views, [(p.i, p.j) for p in pairs], [len(p.matches) for p in pairs])
 
 
@@ -116,7 +117,7 @@ def _foreground_points(obs: dict, masks: Sequence[np.ndarray], n_points: int) ->
 
 @dataclass(frozen=True)
 class MapperOptions:
-    """How COLMAP's mapper and the last bundle adjustment run (:func:`manifoldneus.sfm.map_views`)."""
+    """How COLMAP's mapper and the last bundle adjustment run (:func:`manifoldneus.sfm.mapper.map_views`)."""
 
     refine: tuple[str, ...] = ()  # intrinsics bundle adjustment may change (``sfm.REFINABLE``)
     prior_focal: bool = True  # K's focal length is known (EXIF or calibration), not a guess
@@ -132,7 +133,7 @@ class MapperOptions:
 
 @dataclass(frozen=True)
 class GaugeOptions:
-    """The unit-sphere gauge of the mapper's points (:func:`manifoldneus.cameras.gauge_from_points`)."""
+    """The unit-sphere gauge of the mapper's points (:func:`manifoldneus.geometry.cameras.gauge_from_points`)."""
 
     radius: float = 0.8
     percentile: float = 99.0
@@ -146,7 +147,7 @@ def init_from_matches(view_ids: Sequence[int], K: np.ndarray, keypoints: Sequenc
                       masks: Sequence[np.ndarray] | None = None, log: Callable[[str], None] | None = None,
                       ) -> InitResult:
     """Initial poses of the views ``view_ids`` (the anchors) from our verified matches, by
-    COLMAP's incremental mapper (:func:`manifoldneus.sfm.map_views`: initial pair, registration,
+    COLMAP's incremental mapper (:func:`manifoldneus.sfm.mapper.map_views`: initial pair, registration,
     triangulation, bundle adjustment, as ``mapper`` says), then our gauge.
 
     K [N,3,3], keypoints (length N, [K_v,2] pixels), pairs (:class:`PairMatch`) and W [N,N] are
@@ -154,10 +155,10 @@ def init_from_matches(view_ids: Sequence[int], K: np.ndarray, keypoints: Sequenc
     (H, W) default to twice the principal point. masks (optional, one [H,W] bool per entry of
     ``view_ids``): the gauge's robust extent is then measured on the points seen mostly inside the
     foreground (when there are >= 20 of them); without masks, on the points at least
-    ``gauge.object_min_seen`` of the registered views see (:mod:`manifoldneus.object_region`), whose
+    ``gauge.object_min_seen`` of the registered views see (:mod:`manifoldneus.geometry.object_region`), whose
     region (ball and support plane, gauge frame) the diagnostics carry as ``object_region``.
 
-    Gauge (:func:`manifoldneus.cameras.gauge_from_points`): y = s (x - c), s maps the half diagonal of the
+    Gauge (:func:`manifoldneus.geometry.cameras.gauge_from_points`): y = s (x - c), s maps the half diagonal of the
     points' box between their ``100 - gauge.percentile``-th and ``gauge.percentile``-th percentiles per axis to
     gauge.radius, c the box's middle or (``gauge.centre="median"``) the points' median, pulled towards the box's
     middle as far as keeps the box in the unit sphere: the object sits inside the unit sphere. Views COLMAP does
@@ -345,7 +346,7 @@ def place_successor(
     reproj_px: float = 3.0,
     min_inliers: int = 12,
 ) -> tuple[np.ndarray | None, dict]:
-    """Initial pose of a successor view: COLMAP's absolute pose (:func:`manifoldneus.sfm.absolute_pose`) of its matches to the placed (optimised) views
+    """Initial pose of a successor view: COLMAP's absolute pose (:func:`manifoldneus.sfm.mapper.absolute_pose`) of its matches to the placed (optimised) views
     lifted to 3D, else the best-matching placed neighbour's pose. K, keypoints, pairs and W use
     global view ids (W defaults to the pairs' inlier counts). Never raises for a view that cannot be
     placed: returns (None, info) with ``info["method"] == "unplaced"`` when it has no placed neighbour.

@@ -1,5 +1,5 @@
 """The trainer's plain-array input (:class:`Views`), apart from the trainer so that the artifacts'
-readers (:mod:`manifoldneus.artifacts`) import neither torch nor the field: a stage's fingerprint
+readers (:mod:`manifoldneus.data.artifacts`) import neither torch nor the field: a stage's fingerprint
 hashes every module it can import, and the front-end stages that write artifacts would otherwise
 rerun for every change to the training code.
 """
@@ -70,9 +70,9 @@ class Views:
 
     def undistorted(self, distortion: np.ndarray | None) -> "Views":
         """The views with each one's lens ``distortion`` [N,4] (OpenCV's model, see
-        :mod:`manifoldneus.cameras`) removed at its own K: images and priors resampled bilinearly,
+        :mod:`manifoldneus.geometry.cameras`) removed at its own K: images and priors resampled bilinearly,
         masks by nearest pixel. Views without distortion (or ``distortion`` None) are kept as they are."""
-        from manifoldneus.cameras import has_distortion, undistort_image
+        from manifoldneus.geometry.cameras import has_distortion, undistort_image
 
         if not has_distortion(distortion):
             return self

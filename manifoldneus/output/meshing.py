@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus.cameras import project_points, transform_points
+from manifoldneus.geometry.cameras import project_points, transform_points
 
 
 def sdf_grid(sdf_fn, resolution: int = 256, radius: float = 1.0, chunk: int = 262144,
@@ -321,6 +321,6 @@ def render_preview(mesh, size: int = 320, directions=None, up=None) -> np.ndarra
 
 
 def save_preview(mesh, path, size: int = 320, **kw) -> None:
-    from manifoldneus.io import save_png
+    from manifoldneus.data.io import save_png
 
     save_png(Path(path), render_preview(mesh, size, **kw))

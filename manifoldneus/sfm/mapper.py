@@ -5,7 +5,7 @@ written into a COLMAP database, then COLMAP's incremental mapper and bundle adju
 hloc hands its features to COLMAP) and the ``reference`` stage (COLMAP's own features and
 matches). Successors are placed with COLMAP's absolute pose solver (LO-RANSAC + refinement).
 
-Conventions (shared with :mod:`manifoldneus.cameras`): COLMAP's ``cam_from_world`` is the
+Conventions (shared with :mod:`manifoldneus.geometry.cameras`): COLMAP's ``cam_from_world`` is the
 OpenCV-frame world-to-camera pose, and COLMAP's pixel centres are at +0.5 like ours, so
 keypoints and K pass through unchanged. Cameras are SIMPLE_PINHOLE (f, cx, cy) or PINHOLE
 (fx != fy), or SIMPLE_RADIAL (f, cx, cy, k1) when a radial term is asked for.
@@ -19,7 +19,7 @@ absorbs noise, so where ``principal_point_p`` / ``radial_p`` is given each is fr
 lowers the reprojection error significantly (:func:`free_intrinsic`, a likelihood-ratio test).
 A radial term is COLMAP's SIMPLE_RADIAL k1, which is OpenCV's distortion [k1, 0, 0, 0]
 (:func:`opencv_distortion`): the rest of the project removes it from images and keypoints
-(:func:`manifoldneus.cameras.undistort_points`) and works with pinhole cameras.
+(:func:`manifoldneus.geometry.cameras.undistort_points`) and works with pinhole cameras.
 """
 from __future__ import annotations
 
@@ -106,14 +106,14 @@ def write_database(path: Path, names: Sequence[str], K: np.ndarray, sizes: np.nd
                    keypoints: Sequence[np.ndarray], pairs: Sequence, radial: bool = False,
                    prior_focal: bool = True) -> dict[int, int]:
     """A COLMAP database of our features: views ``names`` with K [N,3,3], sizes [N,2] (H, W),
-    keypoints [K_v,2] px and ``pairs`` (:class:`~manifoldneus.pose_init.PairMatch`, indices into
+    keypoints [K_v,2] px and ``pairs`` (:class:`~manifoldneus.sfm.pose_init.PairMatch`, indices into
     ``names``) as matches and verified two-view geometries (their essential-matrix pose when they
     have one). One rig, frame and image per view; one camera per distinct (K, size).
     ``prior_focal``: the focal length is known (COLMAP trusts it when choosing initial pairs).
     Returns view index -> COLMAP image id."""
     import pycolmap
 
-    from .cameras import skew
+    from manifoldneus.geometry.cameras import skew
 
     path = Path(path)
     if path.exists():

@@ -29,7 +29,7 @@ the origin with world +z up in the images, ordered serpentine (consecutive indic
 neighbours, like the DTU robot path). The whole object is in every view (>= 5 px margin).
 Intrinsics: fx = fy = 2.4 W, principal point at the image centre (W/2, H/2); optionally a lens with
 radial distortion k1 (OpenCV's model, :func:`render_view`), to test its estimation. Conventions are
-those of :mod:`manifoldneus.cameras` (OpenCV, w2c, pixel centres at +0.5).
+those of :mod:`manifoldneus.geometry.cameras` (OpenCV, w2c, pixel centres at +0.5).
 As in DTU, the back and the bottom of the object are never observed: :func:`points_visible`
 restricts ground-truth surface samples to the observed part.
 """
@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from manifoldneus.cameras import look_at_w2c
+from manifoldneus.geometry.cameras import look_at_w2c
 
 # --------------------------------------------------------------------------- shape
 
@@ -445,7 +445,7 @@ def trace(
 def camera_dirs(K: np.ndarray, uv: np.ndarray, k1: float = 0.0) -> np.ndarray:
     """Unit camera-frame directions [M,3] of the rays through pixels uv [M,2] of a camera with K and a
     lens of radial distortion k1 (OpenCV's [k1, 0, 0, 0])."""
-    from manifoldneus.cameras import undistort_points
+    from manifoldneus.geometry.cameras import undistort_points
 
     if k1:
         uv = undistort_points(uv, K, np.array([k1, 0.0, 0.0, 0.0]))

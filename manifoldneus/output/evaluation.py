@@ -9,12 +9,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from manifoldneus import cameras, io, meshing, metrics
+from manifoldneus.geometry import cameras
+from manifoldneus.data import io
+from manifoldneus.output import meshing, metrics
 from manifoldneus.config import param
-from manifoldneus.field import FieldParams
-from manifoldneus.losses import LossParams
-from manifoldneus.render import RenderParams
-from manifoldneus.train import Trainer, TrainParams, TrainRun, Views
+from manifoldneus.neural.field import FieldParams
+from manifoldneus.neural.losses import LossParams
+from manifoldneus.neural.render import RenderParams
+from manifoldneus.neural.train import Trainer, TrainParams, TrainRun, Views
 
 
 @dataclass
@@ -43,7 +45,7 @@ class MeshParams:
     drop_sphere_closure: bool = param(True, "Remove the surface marching cubes puts on the grid's bounding sphere where "
                                       "the SDF is still negative there (no view saw it as surface)")
     crop_to_object: str = param("auto", "Crop the surface to the object's region the anchors found from the SfM "
-                                "points (ball and support plane; manifoldneus/object_region.py): auto = when the "
+                                "points (ball and support plane; manifoldneus/geometry/object_region.py): auto = when the "
                                 "run has no masks | on | off", choices=("auto", "on", "off"))
     support_margin: float = param(0.02, "The crop keeps surface this far above the support plane (in units of the "
                                   "object region's radius), so the support itself goes", lo=0.0, hi=0.5)
@@ -102,7 +104,7 @@ class Surface:
 
 def load_surface_field(surface_dir: Path, ingest_dir: Path, device: str = "cpu") -> Surface:
     """The field of ``surface/<version>`` with the views of ``ingest/<version>`` posed by its round."""
-    from manifoldneus import artifacts
+    from manifoldneus.data import artifacts
 
     result = artifacts.load_surface(surface_dir)
     views = artifacts.load_views(ingest_dir, result["w2c"], result["K"], result.get("distortion"))
@@ -129,7 +131,7 @@ def field_vertex_colours(trainer: Trainer, vertices: np.ndarray, normals: np.nda
 def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=None, region=None,
               object_points=None):
     """Mesh of the trainer's SDF; culled by the given views' dilated masks, to the surface they
-    see and to the object's ``region`` (:class:`~manifoldneus.object_region.ObjectRegion`, the field's
+    see and to the object's ``region`` (:class:`~manifoldneus.geometry.object_region.ObjectRegion`, the field's
     frame) and the silhouettes of its ``object_points`` [P,3], when asked (K [N,3,3] and w2c [N,4,4] at image size
     hw = (H, W), the masks' size)."""
     mesh = meshing.extract_mesh(trainer.sdf_fn(), p.resolution, trainer.rp.radius, p.keep_components,
@@ -177,10 +179,10 @@ def save_mesh_with_preview(mesh, out_dir: Path, p: MeshParams, stem: str = "mesh
 
 def align_test_poses(trainer: Trainer, small: Views, ids, w2c: np.ndarray, p: NovelViewParams, seed: int = 0):
     """Refine the poses ``w2c`` [N,4,4] of views ``ids`` against the trainer's frozen field
-    (:func:`manifoldneus.pose_alignment.align_poses`; the views' own images at the trainer's resolution
+    (:func:`manifoldneus.neural.pose_alignment.align_poses`; the views' own images at the trainer's resolution
     ``small``), all views at once, ``p.align_steps`` Adam steps. Returns (w2c [N,4,4] with those views
     refined, {view: (rotation change deg, centre change)})."""
-    from manifoldneus.pose_alignment import align_poses
+    from manifoldneus.neural.pose_alignment import align_poses
 
     dev = trainer.device
     ids = np.asarray(ids, int)

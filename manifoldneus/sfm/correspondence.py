@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from scipy.stats import norm
 
-from manifoldneus.cameras import pixels_to_normalised, skew
+from manifoldneus.geometry.cameras import pixels_to_normalised, skew
 from manifoldneus.config import param
 
 
@@ -261,7 +261,7 @@ class ReprojectionLoss:
 
 
 class CorrespondenceLoss:
-    """The pose term a :class:`~manifoldneus.train.Trainer` adds to its loss (see module doc)."""
+    """The pose term a :class:`~manifoldneus.neural.train.Trainer` adds to its loss (see module doc)."""
 
     def __init__(self, ms: MatchSet, p: CorrespondenceParams, weight: float = 1.0):
         self.ms, self.p = ms, p

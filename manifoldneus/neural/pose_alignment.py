@@ -16,9 +16,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from manifoldneus.pose_correction import PoseCorrections
-from manifoldneus.rays import camera_rays
-from manifoldneus.render import render_rays
+from manifoldneus.neural.pose_correction import PoseCorrections
+from manifoldneus.geometry.rays import camera_rays
+from manifoldneus.neural.render import render_rays
 
 SILHOUETTE_WEIGHT = 0.1  # of the masks' BCE against the colour L1, as the trainer's default mask loss
 
@@ -45,7 +45,7 @@ def align_poses(trainer, start: torch.Tensor, images: torch.Tensor, masks: torch
     (cosine to a tenth). ``translation`` False learns rotations only: a correction on the left of a
     world-to-camera pose that is a pure rotation keeps the camera centre. Returns the poses [M,3,4] on
     ``start``'s device."""
-    from manifoldneus.train import lr_factor
+    from manifoldneus.neural.train import lr_factor
 
     dev = trainer.device
     M = start.shape[0]

@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from manifoldneus import io
+from manifoldneus.data import io
 
 log = logging.getLogger(__name__)
 

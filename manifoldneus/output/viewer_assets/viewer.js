@@ -1,4 +1,4 @@
-// The viewer page's code (manifoldneus/viewer.py inlines it). Reads the JSON in #scene-data: the
+// The viewer page's code (manifoldneus/output/viewer.py inlines it). Reads the JSON in #scene-data: the
 // mesh (base64 typed arrays), per round the cameras' frusta (apex + 4 image corners, world frame),
 // the GT and pycolmap reference frusta, and per round each view's error against GT. It draws on
 // demand (no animation loop) and, once drawn, writes what it drew onto <html data-*> for tests.

@@ -187,7 +187,7 @@ def plot_cameras(w2c_aligned, w2c_gt, path, valid=None, title: str | None = None
     import matplotlib.pyplot as plt
     from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
-    from .io import save_figure
+    from manifoldneus.data.io import save_figure
 
     est = to_4x4(np.asarray(w2c_aligned, dtype=np.float64))
     gt = to_4x4(np.asarray(w2c_gt, dtype=np.float64))

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import io
-from manifoldneus.views import Views
+from manifoldneus.data import io
+from manifoldneus.data.views import Views
 
 VIEWS = "views.zarr"  # ingest's arrays: images, K, masks, priors
 INPUT_CAMERAS = "input_cameras.zarr"  # ingest's poses a COLMAP model gave (w2c, its points): anchors.pose_init = input
@@ -78,7 +78,7 @@ def load_gt_meta(gt_dir: Path) -> dict:
 
 def load_views(ingest_dir: Path, w2c: np.ndarray | None = None, K: np.ndarray | None = None,
                distortion: np.ndarray | None = None) -> Views:
-    """``ingest``'s ``views.zarr`` as :class:`~manifoldneus.views.Views` (poses: ``w2c`` [N,4,4], or
+    """``ingest``'s ``views.zarr`` as :class:`~manifoldneus.data.views.Views` (poses: ``w2c`` [N,4,4], or
     identity placeholders: ingest never holds poses; intrinsics: ``K`` [N,3,3], e.g. a round's, which
     the anchors may have refined, else the ingest's; ``distortion`` [N,4]: the lens distortion the
     anchors' self-calibration found (a round's), removed from the images and masks)."""

@@ -29,9 +29,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from manifoldneus.config import param
-from manifoldneus.field import fourier_encode
-from manifoldneus.grid_encoding import encode
-from manifoldneus.rays import camera_rays, pixel_grid, sphere_bounds
+from manifoldneus.neural.field import fourier_encode
+from manifoldneus.neural.grid_encoding import encode
+from manifoldneus.geometry.rays import camera_rays, pixel_grid, sphere_bounds
 
 
 @dataclass

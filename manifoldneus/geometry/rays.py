@@ -1,6 +1,6 @@
 """Camera rays (torch, differentiable in the pose) and ray / sphere bounds.
 
-Conventions are those of :mod:`manifoldneus.cameras` (OpenCV frame, ``w2c`` world-to-camera,
+Conventions are those of :mod:`manifoldneus.geometry.cameras` (OpenCV frame, ``w2c`` world-to-camera,
 pixel centres at +0.5). Everything is batched over rays: pass one pose and one K *per ray*
 (gather them with the ray's view index), so a per-view pose tensor that requires grad
 (e.g. ``apply_correction(xi, w2c_init)``) propagates gradients to the poses.

@@ -4,10 +4,10 @@
   camera per physical camera, the SfM points as ``points3D``;
 * nerfstudio's ``transforms.json`` (:func:`write_transforms_json`, read back by
   :func:`read_transforms_json`): camera-to-world poses with OpenGL camera axes
-  (:func:`manifoldneus.cameras.opengl_c2w`), intrinsics at the top level when shared (else per
+  (:func:`manifoldneus.geometry.cameras.opengl_c2w`), intrinsics at the top level when shared (else per
   frame), image paths relative to the file, ``ply_file_path`` the SfM points (:func:`write_points_ply`);
 * the mesh as PLY and as binary glTF (``.glb``: browsers, Blender, three.js), with vertex colours;
-  the glTF turned so that the scene's vertical is its +Y (:func:`manifoldneus.cameras.gltf_from_world`);
+  the glTF turned so that the scene's vertical is its +Y (:func:`manifoldneus.geometry.cameras.gltf_from_world`);
 * ``world_from_model.json``: the similarity from the method's unit-sphere frame to the frame of the
   exports (:func:`write_frame`), so that any result of the pipeline can be brought into it.
 
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import cameras
+from manifoldneus.geometry import cameras
 
 TRANSFORMS = "transforms.json"
 FRAME = "world_from_model.json"
@@ -196,7 +196,7 @@ def write_frame(path: Path, world_from_model: np.ndarray, frame: str, units: str
     out = {"world_from_model": np.asarray(world_from_model, np.float64).tolist(), "s": s, "R": R.tolist(),
            "t": t.tolist(), "frame": frame, "units": units, "how": how,
            "convention": "y = s R x + t maps a point of the method's frame to this frame; poses map with "
-                         "manifoldneus.cameras.transform_w2c(w2c, s, R, t)",
+                         "manifoldneus.geometry.cameras.transform_w2c(w2c, s, R, t)",
            "gltf_from_world": np.asarray(gltf_from_world, np.float64).tolist(),
            "gltf": "mesh.glb holds gltf_from_world @ the points of this frame: the cameras' vertical is its +Y "
                    "(glTF's up); mesh.ply, colmap/ and transforms.json are in this frame"}

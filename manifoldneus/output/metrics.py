@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import io
+from manifoldneus.data import io
 
 
 def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:

@@ -1,18 +1,18 @@
 """Learnable per-view pose corrections: the one place that owns them (as nerfstudio's
-``CameraOptimizer``; the Lie algebra is :mod:`manifoldneus.cameras`').
+``CameraOptimizer``; the Lie algebra is :mod:`manifoldneus.geometry.cameras`').
 
 A correction is an se(3) vector per view, ``xi`` [N,6], applied on the left of the initial
 world-to-camera pose: ``w2c = exp(xi) @ w2c_init`` (:func:`cameras.apply_correction`). This module
 owns which views learn, the step from which they do (exactly that step: before it every
 correction is held at zero), their AdamW optimiser and its learning rate, and the check that a
-learned pose jumped. The :class:`~manifoldneus.train.Trainer` composes it.
+learned pose jumped. The :class:`~manifoldneus.neural.train.Trainer` composes it.
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from manifoldneus.cameras import apply_correction, rotation_angle_deg
+from manifoldneus.geometry.cameras import apply_correction, rotation_angle_deg
 
 
 class PoseCorrections:

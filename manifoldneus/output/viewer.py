@@ -21,7 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus import artifacts, cameras, export, io, meshing
+from manifoldneus.data import artifacts, io
+from manifoldneus.geometry import cameras
+from manifoldneus.output import export, meshing
 
 ASSETS = Path(__file__).with_name("viewer_assets")
 MAX_FACES = 200_000  # what a browser turns smoothly on a laptop; larger meshes are decimated to it

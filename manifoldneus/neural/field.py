@@ -27,7 +27,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from manifoldneus.config import param
-from manifoldneus.grid_encoding import encode
+from manifoldneus.neural.grid_encoding import encode
 
 
 @dataclass
