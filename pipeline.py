@@ -233,7 +233,7 @@ def _command(args) -> int:
 
             webbrowser.open(path.resolve().as_uri())
     elif args.command == "report":
-        from runner.report import build_report
+        from report import build_report
 
         print(f"wrote {build_report(args.scene, args.artifacts, args.out, args.data_root)}")
     elif args.command == "gc":

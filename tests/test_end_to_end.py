@@ -361,7 +361,7 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     assert (exported / "images" / "IMG_0004.png").is_file() and not (exported / "images" / "IMG_0004.jpg").exists()
     assert "IMG_0002.jpg" in (exported / "colmap" / "images.txt").read_text()
     # the report shows what the run made, not rows of what ground truth would have scored
-    from runner.report import build_report
+    from report import build_report
 
     page = build_report(str(photos), artifacts).read_text()
     assert "no ground truth" in page and "not available" not in page and "NeuS-BARF" not in page

@@ -1,4 +1,4 @@
-"""runner/report.py (`pipeline.py report`): the report page built from the tiny synthetic pipeline's artifacts (default run
+"""report.py (`pipeline.py report`): the report page built from the tiny synthetic pipeline's artifacts (default run
 and the neus-barf preset; neus-colmap left out, so the page must name it missing), and the
 Fig. A1 helpers on hand-made numbers."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from test_end_to_end import TINY, current
 
 import pipeline
-from runner import report
+import report
 from manifoldneus.data import io
 
 
