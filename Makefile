@@ -13,9 +13,12 @@ PY := .venv/bin/python
 setup: .venv/.installed
 # an editable install: the checkout is the code that runs; pyproject.toml lists what it needs
 .venv/.installed: pyproject.toml constraints.txt
+	@echo "[setup 1/3] a virtual environment in .venv"
 	python3 -m venv .venv
 	$(PY) -m pip install -q --upgrade pip
+	@echo "[setup 2/3] the project and its dependencies (torch, pycolmap, OpenCV, ...: a few minutes, about 2 GB)"
 	$(PY) -m pip install -q -c constraints.txt -e ".[dask,dev]"
+	@echo "[setup 3/3] the CPU grid kernel (g++, under a minute, once)"
 	$(PY) -c "from manifoldneus.neural.grid_encoding import fused_kernel; fused_kernel()"  # builds the CPU grid kernel once
 	touch $@
 
