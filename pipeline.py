@@ -11,8 +11,8 @@
     python pipeline.py report --scene S [--out DIR]
     python pipeline.py gc [--scene S] [--dry-run]
 
-This file is the command line only; what it calls (and what scripts and tests import from here) is
-the package ``runner``, whose docstring describes the artifact layout and the fingerprints.
+This file is the command line only; what it calls (and what scripts, benches and tests import) is the
+package ``runner``, whose docstring describes the artifact layout and the fingerprints.
 """
 from __future__ import annotations
 
@@ -27,7 +27,6 @@ import sys
 import threading
 from pathlib import Path
 
-from runner import *  # noqa: F401,F403 - the runner's API, as scripts and tests have used it from here
 from runner import executor
 from runner.common import DEFAULT_ARTIFACTS, DEFAULT_PARAMS, PipelineError, Terminated, _raise_terminated
 from runner.execute import cli_hint, run

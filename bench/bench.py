@@ -41,7 +41,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import pipeline
+import runner
 from manifoldneus.data.artifacts import ANCHOR_ROUND, REFERENCE_POSE_METRICS, ROUND_META, load_evaluation, successor_rounds
 from manifoldneus.data import io
 from runner import executor
@@ -92,9 +92,9 @@ class Run:
 def targets_per_preset(systems: list[System], until: str | None) -> dict[str | None, list[str]]:
     """Preset -> the stages its runs bring up to date (with what they depend on): what its systems
     are scored by, each cut at `--until`."""
-    order = list(pipeline.load_stages())
+    order = list(runner.load_stages())
     if until is not None and until not in order:
-        raise pipeline.PipelineError(f"unknown stage {until!r} for --until (stages: {', '.join(order)})")
+        raise runner.PipelineError(f"unknown stage {until!r} for --until (stages: {', '.join(order)})")
     out: dict[str | None, list[str]] = {}
     for s in systems:
         target = s.scored_by if until is None else min(s.scored_by, until, key=order.index)
@@ -109,16 +109,16 @@ def collect(scene: str, artifacts: Path, preset: str | None = None, stages=None,
     """Stage -> fingerprint, wall / CPU seconds, peak RSS and metrics of the versions a run used
     (`versions`: stage -> fingerprint), else of the preset's current versions (all stages that
     have one, or just `stages`)."""
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name, preset)
+    store = runner.Store(artifacts, runner.resolve_scene(scene).name, preset)
     rows = {}
-    for name in stages if stages is not None else pipeline.load_stages():
+    for name in stages if stages is not None else runner.load_stages():
         m = store.manifest(name, (versions or {}).get(name))
         if m is not None:
             rows[name] = {k: m[k] for k in ("fingerprint", "wall_seconds", "cpu_seconds", "peak_rss_mib", "metrics")}
     return rows
 
 
-def rounds_total_iters(store: pipeline.Store, versions: dict[str, str] | None = None) -> int:
+def rounds_total_iters(store: runner.Store, versions: dict[str, str] | None = None) -> int:
     """Iterations of the anchors' round and every successor round: of the store's current versions, or
     of ``versions`` (stage -> fingerprint)."""
     def version(stage):
@@ -130,7 +130,7 @@ def rounds_total_iters(store: pipeline.Store, versions: dict[str, str] | None = 
     return int(steps)
 
 
-def surface_iters(store: pipeline.Store, version: str | None = None) -> int | None:
+def surface_iters(store: runner.Store, version: str | None = None) -> int | None:
     """Iterations of the field the mesh and the renderings come from (the surface stage's; the last
     round's field where it trained none: then every round's together)."""
     info = io.load_json(store.version_dir("surface", version or store.current("surface")) / ROUND_META)
@@ -144,7 +144,7 @@ def run_systems(scenes: list[str], systems: list[System], overrides: list[str], 
     forced stages included, before the runs fan out. Every system's surface stage trains as many
     iterations (`surface.iters`): NeuS on fixed poses and the method compare at equal iterations.
     Returns scene -> its runs."""
-    stages = pipeline.load_stages()
+    stages = runner.load_stages()
     targets = targets_per_preset(systems, until)
     specs = [executor.RunSpec(f"{scene} {preset or 'default'}", scene,
                               dict(until=targets[preset], overrides=list(overrides), preset=preset,
@@ -156,7 +156,7 @@ def run_systems(scenes: list[str], systems: list[System], overrides: list[str], 
     runs: dict[str, list[Run]] = {}
     for spec in specs:
         preset, outcome = spec.args["preset"], outcomes[spec.name]
-        params = pipeline.resolve_params(stages, overrides=spec.args["overrides"], preset=preset)
+        params = runner.resolve_params(stages, overrides=spec.args["overrides"], preset=preset)
         rows = {} if outcome.error else collect(spec.scene, artifacts, preset, outcome.report, outcome.report.fingerprints)
         for stage, row in rows.items():  # a later preset reuses what an earlier one computed: still of this bench
             row["computed_in_this_bench"] = (stage, row["fingerprint"]) in computed
@@ -212,7 +212,7 @@ def reference_scores(evaluate_poses_dir: Path) -> dict:
     return {"units": res["units"], "n_valid": res["n_valid"], "n_views": res["n_views"], **pose_errors(res["summary"])}
 
 
-def system_result(system: System, run: Run, store: pipeline.Store) -> dict:
+def system_result(system: System, run: Run, store: runner.Store) -> dict:
     rows = run.rows
     charged = charged_stages(system, run.params)
     stages = {s: {k: rows[s][k] for k in ("fingerprint", "wall_seconds", "cpu_seconds", "peak_rss_mib",
@@ -303,7 +303,7 @@ def machine() -> dict:
 def scene_results(scene: str, scene_runs: list[Run], systems: list[System], artifacts: Path) -> dict[str, dict]:
     """System key -> its JSON-ready result in one seed's runs of a scene."""
     by_preset = {run.preset: run for run in scene_runs}
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
+    store = runner.Store(artifacts, runner.resolve_scene(scene).name)
     out = {s.key: system_result(s, by_preset[s.preset], store) for s in systems}
     add_ratios(out)
     return out
@@ -335,8 +335,8 @@ def resolved_params(overrides=(), params_path: Path | None = None) -> dict:
     defaults are not shown as today's."""
     from runner.params import read_params_file, resolve_params
 
-    stages = pipeline.load_stages()
-    params_path = params_path or pipeline.DEFAULT_PARAMS
+    stages = runner.load_stages()
+    params_path = params_path or runner.DEFAULT_PARAMS
     out = {}
     defined = {None, *(read_params_file(params_path).get("presets") or {})}
     for preset in dict.fromkeys(s.preset for s in SYSTEMS.values() if s.preset in defined):  # an older file may lack one
@@ -371,7 +371,7 @@ def over_seeds(per_seed: dict[str, dict]) -> dict:
 
 
 def run_benches(scenes: list[str], systems: list[System], overrides=(), until=None, force=(),
-                artifacts=pipeline.DEFAULT_ARTIFACTS, executor_name: str = "in-process", workers: int | None = None,
+                artifacts=runner.DEFAULT_ARTIFACTS, executor_name: str = "in-process", workers: int | None = None,
                 seeds: list[int] | None = None) -> dict[str, dict]:
     """Run the systems on every scene, once per seed (``run.seed``; None: the parameters' own); scene
     -> its JSON-ready result. With several scenes or seeds the run's total wall time and machine
@@ -395,7 +395,7 @@ def run_benches(scenes: list[str], systems: list[System], overrides=(), until=No
         else:
             systems_results = next(iter(by_seed.values()))
         results[scene] = {
-            "scene": pipeline.resolve_scene(scene).name,
+            "scene": runner.resolve_scene(scene).name,
             "date": dt.datetime.fromtimestamp(started).isoformat(timespec="seconds"),
             "machine": host,
             "commit": git_commit(),
@@ -489,7 +489,7 @@ def systems_table(result: dict, scene_column: bool = False) -> str:
 def stage_system_table(result: dict) -> str:
     """Wall seconds of each charged stage (rows) per system (columns), and the totals."""
     systems = result["systems"].values()
-    order = list(pipeline.load_stages())
+    order = list(runner.load_stages())
     stages = sorted({st for s in systems for st in s["stages"]}, key=order.index)
     rows = [[st, *(fmt(s["stages"].get(st, {}).get("wall_seconds"), ".1f") for s in systems)] for st in stages]
     totals = [sum(st["wall_seconds"] for st in s["stages"].values()) for s in systems]
@@ -541,7 +541,7 @@ def notes(result: dict) -> list[str]:
                    f"ground-truth poses.{lpips}")
     missing = {st for s in systems.values() for st in s["missing_stages"]}
     if missing:
-        names = ", ".join(sorted(missing, key=list(pipeline.load_stages()).index))
+        names = ", ".join(sorted(missing, key=list(runner.load_stages()).index))
         out.append(f"Not run in this bench (`--until {result['until']}`): {names}; totals leave them out.")
     return out
 
@@ -586,16 +586,16 @@ def main(argv=None) -> int:
     ap.add_argument("--until", default=None, help="stop every run after this stage")
     ap.add_argument("--force-all", action="store_true", help="recompute every version once (fresh timings)")
     ap.add_argument("--force", action="append", default=[], metavar="STAGE", help="recompute this stage")
-    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
+    ap.add_argument("--artifacts", type=Path, default=runner.DEFAULT_ARTIFACTS)
     ap.add_argument("--out-dir", type=Path, default=DEFAULT_OUT_DIR, help="results go to OUT_DIR/<scene>/<date>.json")
     executor.add_arguments(ap)
     args = ap.parse_args(argv)
-    force = list(pipeline.load_stages()) if args.force_all else args.force
+    force = list(runner.load_stages()) if args.force_all else args.force
     try:
         results = run_benches(list(dict.fromkeys(args.scene or ["scan24"])), args.systems, args.overrides, args.until,
                               force, args.artifacts, args.executor, args.workers,
                               seeds=[int(s) for s in args.seeds.split(",")] if args.seeds else None)
-    except (pipeline.PipelineError, pipeline.ParamError, pipeline.SceneError) as e:
+    except (runner.PipelineError, runner.ParamError, runner.SceneError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     for result in results.values():

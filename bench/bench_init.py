@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-import pipeline
+import runner
 from manifoldneus.geometry import cameras, pose_metrics
 from manifoldneus.data import io, scenes
 from manifoldneus.sfm import pose_init
@@ -62,12 +62,12 @@ def scaffold_points(inputs, anchors: list[int], obs: dict) -> dict[int, np.ndarr
 
 
 def one(scene_name: str, setting: str, overrides: list[str], artifacts: Path) -> dict:
-    pipeline.run(scene_name, until="schedule", overrides=overrides, artifacts=artifacts)
-    stages = pipeline.load_stages()
-    scene = pipeline.resolve_scene(scene_name)
-    resolved = pipeline.resolve_params(stages, overrides=overrides)
-    store = pipeline.Store(artifacts, scene.name)
-    fps = pipeline.compute_fingerprints(stages, resolved, scene, store)
+    runner.run(scene_name, until="schedule", overrides=overrides, artifacts=artifacts)
+    stages = runner.load_stages()
+    scene = runner.resolve_scene(scene_name)
+    resolved = runner.resolve_params(stages, overrides=overrides)
+    store = runner.Store(artifacts, scene.name)
+    fps = runner.compute_fingerprints(stages, resolved, scene, store)
     upstream = fps["anchors"]["upstream"]
     inputs = posefree.load_inputs(**{s: store.version_dir(s, upstream[s]) for s in posefree.INPUT_STAGES})
     rounds = inputs.schedule["round"]
@@ -120,7 +120,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default="synthetic,scan24,scan24_idr")
     ap.add_argument("--settings", default="default,alpha=0.5,alpha=0.35,fps-se")
     ap.add_argument("--label", default="init")
-    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
+    ap.add_argument("--artifacts", type=Path, default=runner.DEFAULT_ARTIFACTS)
     ap.add_argument("--out-dir", type=Path, default=ROOT / "bench")
     args = ap.parse_args(argv)
     rows = []

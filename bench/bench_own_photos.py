@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-import pipeline
+import runner
 from manifoldneus.data.artifacts import load_evaluation
 from bench import bench
 from bench.bench import git_commit, spread
@@ -40,8 +40,8 @@ MEASURES = ("focal_err_pct", "rot_deg", "centre", "chamfer", "psnr_object", "pyc
 def one_run(scene: str, system: str, seed: int, overrides: list[str], artifacts: Path) -> dict:
     over = [*overrides, *SYSTEMS[system], f"run.seed={seed}"]
     t0 = time.time()
-    pipeline.run(scene, overrides=over, artifacts=artifacts)
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
+    runner.run(scene, overrides=over, artifacts=artifacts)
+    store = runner.Store(artifacts, runner.resolve_scene(scene).name)
     ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
     final = ev["poses"][-1]["summary"]
     ref = bench.reference_scores(store.version_dir("evaluate_poses", store.current("evaluate_poses")))
@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0,1")
     ap.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated, of: " + ", ".join(SYSTEMS))
     ap.add_argument("--set", action="append", default=[], dest="overrides")
-    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
+    ap.add_argument("--artifacts", type=Path, default=runner.DEFAULT_ARTIFACTS)
     ap.add_argument("--label", default="own-photos")
     ap.add_argument("--out-dir", type=Path, default=bench.DEFAULT_OUT_DIR)
     ap.add_argument("--merge", nargs="+", type=Path, help="JSON files of runs made side by side: one table of all")

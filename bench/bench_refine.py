@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 
-import pipeline
+import runner
 from manifoldneus.data.artifacts import load_evaluation, load_reference_surface_meta
 from bench import bench
 from bench.bench import git_commit, spread
@@ -43,11 +43,11 @@ TIMED = ("ingest", "features", "matching", "covisibility", "spectral", "schedule
 def one_run(scene: str, seed: int, overrides: list[str], artifacts: Path, with_neus: bool, with_gt_pose: bool) -> dict:
     """The pipeline for one seed, and what it measured."""
     over = [*overrides, f"run.seed={seed}"]
-    iters = pipeline.resolve_params(pipeline.load_stages(), overrides=over)["surface"].iters
+    iters = runner.resolve_params(runner.load_stages(), overrides=over)["surface"].iters
     t0 = time.time()
     over += [f"reference_surface.iters={iters}"] if with_gt_pose else ["reference_surface.enabled=false"]
-    pipeline.run(scene, overrides=over, artifacts=artifacts)
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name)
+    runner.run(scene, overrides=over, artifacts=artifacts)
+    store = runner.Store(artifacts, runner.resolve_scene(scene).name)
     rows = bench.collect(scene, artifacts, None, TIMED)
     ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
     out = {"seed": seed, "overrides": over, "rounds_iters": bench.rounds_total_iters(store), "surface_iters": iters,
@@ -99,8 +99,8 @@ def sfm_all(scene: str, overrides: list[str], with_neus: bool, artifacts: Path, 
     trained: the same version as the default preset's (the presets do not change what it reads), so on
     DTU both Chamfer distances are to one reference."""
     over = [*overrides, *([] if with_neus else ["surface.iters=0"])]
-    pipeline.run(scene, overrides=over, artifacts=artifacts, preset="sfm-all")
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene).name, "sfm-all")
+    runner.run(scene, overrides=over, artifacts=artifacts, preset="sfm-all")
+    store = runner.Store(artifacts, runner.resolve_scene(scene).name, "sfm-all")
     ev = load_evaluation(store.version_dir("evaluate", store.current("evaluate")))
     out = errs(ev["poses"][-1]["summary"])
     return {**out, **surface_scores(ev)} if with_neus else out
@@ -261,7 +261,7 @@ def main(argv=None) -> int:
     ap.add_argument("--gt-pose", action="store_true", help="also train the GT-pose NeuS for as many iterations (once: "
                     "its seed is reference_surface.seed)")
     ap.add_argument("--set", action="append", default=[], dest="overrides")
-    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
+    ap.add_argument("--artifacts", type=Path, default=runner.DEFAULT_ARTIFACTS)
     ap.add_argument("--label", default="refine")
     ap.add_argument("--out-dir", type=Path, default=bench.DEFAULT_OUT_DIR)
     args = ap.parse_args(argv)

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-import pipeline
+import runner
 from bench import bench
 from manifoldneus.data import artifacts as art
 from manifoldneus.output import evaluation
@@ -48,10 +48,10 @@ from manifoldneus.sfm.correspondence import TrackSet, reprojection_px
 from manifoldneus.neural.pose_alignment import residuals
 
 
-def sfm_all_tracks(store: pipeline.Store, seed: int = 0) -> tuple[list[int], pose_init.InitResult, TrackSet]:
+def sfm_all_tracks(store: runner.Store, seed: int = 0) -> tuple[list[int], pose_init.InitResult, TrackSet]:
     """(training view ids, the mapper's result on all of them, its tracks)."""
     inputs = posefree.load_inputs(**{s: store.version_dir(s, store.current(s)) for s in posefree.INPUT_STAGES})
-    p = pipeline.resolve_params(pipeline.load_stages())["anchors"]
+    p = runner.resolve_params(runner.load_stages())["anchors"]
     ids = [int(v) for v in np.flatnonzero(inputs.train_mask)]
     with io.native_output_to(Path("/dev/null")):
         res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
@@ -103,7 +103,7 @@ def field_losses(trainer, w2c: np.ndarray, view: torch.Tensor, pix: torch.Tensor
     return {"colour_l1": l1 / max(weight, 1.0), "silhouette_bce": None if trainer.masks is None else bce / len(view)}
 
 
-def field_report(store: pipeline.Store, version: str, control_deg: float, rays_per_view: int, seed: int = 0) -> dict:
+def field_report(store: runner.Store, version: str, control_deg: float, rays_per_view: int, seed: int = 0) -> dict:
     """field_losses under the final poses and the two controls made from them."""
     final_dir = store.version_dir("successors", version) / art.FINAL_ROUND
     final = art.load_round(final_dir)
@@ -121,8 +121,8 @@ def field_report(store: pipeline.Store, version: str, control_deg: float, rays_p
 
 
 def scene_report(scene: str, artifacts: Path, control_deg: float, rays_per_view: int, seed: int = 0) -> dict:
-    name = pipeline.resolve_scene(scene).name
-    sfm_store, ours_store = pipeline.Store(artifacts, name, "sfm-all"), pipeline.Store(artifacts, name, None)
+    name = runner.resolve_scene(scene).name
+    sfm_store, ours_store = runner.Store(artifacts, name, "sfm-all"), runner.Store(artifacts, name, None)
     ids, res, tracks = sfm_all_tracks(sfm_store, seed)
     gt = load_ground_truth_poses(sfm_store.version_dir("ground_truth", sfm_store.current("ground_truth")))["w2c"][ids]
     sfm = np.asarray(res.w2c, np.float64)
@@ -183,7 +183,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default="synthetic,scan24,scan24_idr")
     ap.add_argument("--control-deg", type=float, default=0.1)
     ap.add_argument("--rays-per-view", type=int, default=2048)
-    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
+    ap.add_argument("--artifacts", type=Path, default=runner.DEFAULT_ARTIFACTS)
     ap.add_argument("--out-dir", type=Path, default=bench.DEFAULT_OUT_DIR)
     args = ap.parse_args(argv)
     result = {"date": dt.datetime.now().isoformat(timespec="seconds"), "commit": bench.git_commit(),

@@ -13,7 +13,7 @@ TABLE (default values in brackets; ``--values`` picks others):
   A7      strategy x coverage (Fig. A7)           [FPS-E FPS-SE MaVOS-E MaVOS-SE]
   sparse  every n-th view (Sec. 4.4)              [1 2 3 5]  (of 49 views: 49, 25, 17, 10)
 
-Each setting is one ``pipeline.run`` with the setting's overrides on top of ``--set``; the
+Each setting is one ``runner.run`` with the setting's overrides on top of ``--set``; the
 runner's cache reruns only the stages whose parameters the setting touches (an alpha sweep
 reuses ingest .. spectral, the pycolmap reference and the GT-pose reference surface). Every
 setting runs up to ``evaluate``, whose ``evaluation.json`` holds the pose errors per round.
@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import rankdata
 
-import pipeline
+import runner
 from manifoldneus.data import io
 from manifoldneus.data.artifacts import load_evaluation, load_gt_meta, load_schedule_meta, load_views_meta, round_folder
 from runner import executor
@@ -282,7 +282,7 @@ def settings_for(table: str, values: list[str] | None = None) -> list[Setting]:
 # ---------------------------------------------------------------------------- running
 
 
-def upstream_manifests(store: pipeline.Store, stage: str, fingerprint: str, out: dict | None = None) -> dict:
+def upstream_manifests(store: runner.Store, stage: str, fingerprint: str, out: dict | None = None) -> dict:
     """Stage -> manifest of a version and of every version upstream of it: what its results rest on.
     Followed through the manifests, not recomputed fingerprints: code edited while a sweep runs
     changes fingerprints, not what was run."""
@@ -303,7 +303,7 @@ def _round_errors(evaluation: dict) -> list[dict]:
 
 def setting_row(setting: Setting, outcome: executor.Outcome, scene: str, artifacts: Path, data_root=None) -> dict:
     """One row: the evaluation of the setting's run, read by the versions it used."""
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(scene, data_root).name)
+    store = runner.Store(artifacts, runner.resolve_scene(scene, data_root).name)
     manifests = upstream_manifests(store, "evaluate", outcome.report.fingerprints["evaluate"])
     versions = {name: store.version_dir(name, m["fingerprint"]) for name, m in manifests.items()}
     gt = load_gt_meta(versions["ground_truth"])
@@ -416,16 +416,16 @@ def markdown(result: dict) -> str:
 
 
 def run_sweep(table: str, scene: str = "scan24", values: list[str] | None = None, overrides: list[str] = (),
-              artifacts: Path = pipeline.DEFAULT_ARTIFACTS, profile: str | None = None, data_root=None,
+              artifacts: Path = runner.DEFAULT_ARTIFACTS, profile: str | None = None, data_root=None,
               out_root: Path = ROOT / "bench", tag: str = "", executor_name: str = "in-process",
               workers: int | None = None) -> dict:
     """Run every setting of a table, print its markdown table, write the JSON; returns the result.
     Each setting is one run of `executor_name` (module docstring of runner/executor.py)."""
     settings = settings_for(table, values)
-    stages = pipeline.load_stages()
+    stages = runner.load_stages()
     for s in settings:  # every override is checked before hours of computing start
-        resolved = pipeline.resolve_params(stages, pipeline.DEFAULT_PARAMS, [*overrides, *s.overrides], profile)
-    scene_name = pipeline.resolve_scene(scene, data_root).name
+        resolved = runner.resolve_params(stages, runner.DEFAULT_PARAMS, [*overrides, *s.overrides], profile)
+    scene_name = runner.resolve_scene(scene, data_root).name
     name = "_".join(["sweep", table, *([tag] if tag else []), dt.date.today().isoformat()])
     out = Path(out_root) / scene_name / f"{name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -469,7 +469,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="applied to every setting (the setting's own keys win)")
     ap.add_argument("--profile", default=None, help="fast | paper (default: params.yaml's `profile`)")
-    ap.add_argument("--artifacts", type=Path, default=pipeline.DEFAULT_ARTIFACTS)
+    ap.add_argument("--artifacts", type=Path, default=runner.DEFAULT_ARTIFACTS)
     ap.add_argument("--data-root", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=ROOT / "bench", help="JSON to OUT/<scene>/sweep_<TABLE>_<date>.json")
     ap.add_argument("--tag", default="", help="names a variant of the table (e.g. 'perturbed'): "
@@ -484,7 +484,7 @@ def main(argv=None) -> int:
     try:
         result = run_sweep(args.table, args.scene, args.values, overrides, args.artifacts, args.profile,
                            args.data_root, args.out, args.tag, args.executor, args.workers)
-    except (SweepError, ParamError, SceneError, pipeline.PipelineError) as e:
+    except (SweepError, ParamError, SceneError, runner.PipelineError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     return 1 if any("error" in r for r in result["settings"]) else 0

@@ -89,10 +89,10 @@ def tiny_run(tmp_path_factory):
     """(artifacts folder, run report) of one TINY run, shared by the test modules. Tests that run
     other parameters into it move some stages' `current` pointers: read a result through
     `Store.lineage` of its last stage, which names the versions it was computed from."""
-    import pipeline
+    import runner
 
     artifacts = tmp_path_factory.mktemp("e2e") / "artifacts"
-    report = pipeline.run("synthetic", overrides=TINY, artifacts=artifacts)
+    report = runner.run("synthetic", overrides=TINY, artifacts=artifacts)
     return artifacts, report
 
 

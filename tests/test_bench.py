@@ -63,7 +63,7 @@ def test_json_has_every_system_with_finite_pose_errors(tiny_bench):
     assert len({f["fingerprint"] for f in features}) == 1 and all(f["computed_in_this_bench"] for f in features)
     assert "reference" in systems["neus-colmap"]["stages"] and "reference" not in systems["manifoldneus"]["stages"]
     # sfm-all holds the mapper's poses of every training view: its final round is its initialisation
-    store = bench.pipeline.Store(tiny_bench[0].parent / "artifacts", "synthetic", "sfm-all")
+    store = bench.runner.Store(tiny_bench[0].parent / "artifacts", "synthetic", "sfm-all")
     ev = json.loads((store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json").read_text())
     assert [r["label"] for r in ev["poses"]][:2] == ["initial", "anchors"]
     first, last = ev["poses"][0]["summary"], ev["poses"][-1]["summary"]
@@ -93,7 +93,7 @@ def test_each_figure_is_the_mean_over_seeds_with_its_spread(tiny_bench):
     assert ours[0]["stages"]["features"]["fingerprint"] == ours[1]["stages"]["features"]["fingerprint"]
     # the GT-pose reference surface (Chamfer's yardstick) has a seed of its own and reads only the
     # pixels of the method's ingest: one version for both seeds and for the photos alone
-    store = bench.pipeline.Store(tiny_bench[0].parent / "artifacts", "synthetic")
+    store = bench.runner.Store(tiny_bench[0].parent / "artifacts", "synthetic")
     versions = [d for d in store.stage_dir("reference_surface").iterdir() if not d.name.startswith("current")]
     assert len(versions) == 1, versions
     # photos alone: the layout's intrinsics and masks dropped, yet every figure scored

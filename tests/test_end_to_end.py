@@ -10,7 +10,7 @@ import torch
 
 from conftest import TINY
 
-import pipeline
+import runner
 import trimesh
 
 from manifoldneus.config import ParamError
@@ -20,13 +20,13 @@ from manifoldneus.data import io
 
 
 def current(artifacts, stage, preset=None):
-    store = pipeline.Store(artifacts, "synthetic", preset)
+    store = runner.Store(artifacts, "synthetic", preset)
     return store.version_dir(stage, store.current(stage))
 
 
 def test_every_stage_ran_and_published(tiny_run):
     artifacts, report = tiny_run
-    assert set(report) == set(pipeline.load_stages())
+    assert set(report) == set(runner.load_stages())
     assert all(v == "computed" for v in report.values())
     for stage in report:
         assert (current(artifacts, stage) / "manifest.json").is_file()
@@ -82,14 +82,14 @@ def test_a_view_without_a_pose_is_named_in_the_summary(tmp_path):
     io.save_json(schedule / "schedule.json", {"held_out_views": [0], "views": [
         {"view": i, "name": f"IMG_{i}", "role": r} for i, r in enumerate(["excluded", "anchor", "round1", "excluded"])]})
     io.save_arrays(successors / "final" / "poses.zarr", {"placed": np.array([False, True, False, False])})
-    lines = pipeline.posed_lines(successors, schedule)
+    lines = runner.posed_lines(successors, schedule)
     assert lines[0] == "posed:   1 of 3 views (1 more held out for evaluation)"
     assert lines[1].startswith("WARNING: 2 view(s) got no pose: IMG_2, IMG_3 (")
 
 
 def test_the_summary_says_what_the_run_found_and_where(tiny_run):
     artifacts, report = tiny_run
-    text = pipeline.run_summary("synthetic", report, artifacts)
+    text = runner.run_summary("synthetic", report, artifacts)
     ev = io.load_json(artifacts / "synthetic" / "evaluate" / report.fingerprints["evaluate"] / "evaluation.json")
     rot = ev["poses"][-1]["summary"]["rot_err_deg"]["mean"]
     assert f"rotation {rot:.3f} deg mean" in text
@@ -115,14 +115,14 @@ def test_the_summary_says_what_the_run_found_and_where(tiny_run):
     intr = {"source": "default", "start": {"focal_px": 960.0, "principal_point_px": [400.0, 300.0]},
             "final": {"focal_px": 1436.4, "principal_point_px": [411.9, 313.0], "focal_err_pct": 0.52},
             "ground_truth": {"focal_px": 1443.9, "principal_point_px": [411.6, 309.5]}}
-    assert pipeline.camera_line(intr) == ("camera (default): focal 1436.4 px, principal point (411.9, 313.0); "
+    assert runner.camera_line(intr) == ("camera (default): focal 1436.4 px, principal point (411.9, 313.0); "
                                           "self-calibrated from 960.0 px, (400.0, 300.0); ground truth 1443.9 px, "
                                           "0.52 % off")
 
 
 def test_alpha_change_reruns_schedule_and_after_only(tiny_run):
     artifacts, _ = tiny_run
-    st = pipeline.status("synthetic", overrides=TINY + ["schedule.alpha=0.3"], artifacts=artifacts)
+    st = runner.status("synthetic", overrides=TINY + ["schedule.alpha=0.3"], artifacts=artifacts)
     stale = {s for s, (state, _) in st.items() if state != "fresh"}
     assert stale == {"schedule", "anchors", "successors", "surface", "mesh", "evaluate", "export"}
 
@@ -131,7 +131,7 @@ def test_the_surface_is_a_field_of_every_posed_view_at_its_final_pose(tiny_run):
     """The surface stage keeps the last round's poses to the last bit and trains a field of its own on
     every view they pose; its keys change the surface and what reads it, never the rounds."""
     artifacts, _ = tiny_run
-    store = pipeline.Store(artifacts, "synthetic")
+    store = runner.Store(artifacts, "synthetic")
     versions = store.lineage("evaluate")
     final, surface = versions["successors"] / "final", versions["surface"]
     ours, last = io.load_arrays(surface / "poses.zarr"), io.load_arrays(final / "poses.zarr")
@@ -155,30 +155,30 @@ def test_the_surface_is_a_field_of_every_posed_view_at_its_final_pose(tiny_run):
     on_surface = np.abs(sdf(cameras.transform_points(G, vertices)))  # [V] the field's zero level, in its frame
     assert np.median(on_surface) < 0.1 * np.median(np.abs(sdf(vertices)))
     with pytest.raises(ParamError, match="surface.frame = rounds"):
-        pipeline.status("synthetic", overrides=TINY + ["surface.start=rounds"], artifacts=artifacts)
-    st = pipeline.status("synthetic", overrides=TINY + ["surface.iters=0"], artifacts=artifacts)
+        runner.status("synthetic", overrides=TINY + ["surface.start=rounds"], artifacts=artifacts)
+    st = runner.status("synthetic", overrides=TINY + ["surface.iters=0"], artifacts=artifacts)
     assert {s for s, (state, _) in st.items() if state != "fresh"} == {"surface", "mesh", "evaluate", "export"}
-    report = pipeline.run("synthetic", until="surface", overrides=TINY + ["surface.iters=0"], artifacts=artifacts)
+    report = runner.run("synthetic", until="surface", overrides=TINY + ["surface.iters=0"], artifacts=artifacts)
     assert report["successors"] == "reused" and report["surface"] == "computed"
     copied = current(artifacts, "surface")  # iters 0: the last round's field is the surface
     assert (copied / "model.pt").read_bytes() == (final / "model.pt").read_bytes()
-    assert set(pipeline.run("synthetic", overrides=TINY, artifacts=artifacts).values()) == {"reused"}  # pointers back
+    assert set(runner.run("synthetic", overrides=TINY, artifacts=artifacts).values()) == {"reused"}  # pointers back
 
 
 def test_each_value_has_one_home(tiny_run):
     """The reference's length is its own: changing it touches the reference and the evaluation
     only, and the pose-free stages' lengths are not in `train`."""
     artifacts, _ = tiny_run
-    st = pipeline.status("synthetic", overrides=TINY + ["reference_surface.iters=41"], artifacts=artifacts)
+    st = runner.status("synthetic", overrides=TINY + ["reference_surface.iters=41"], artifacts=artifacts)
     assert {s for s, (state, _) in st.items() if state != "fresh"} == {"reference_surface", "evaluate"}
     for key in ("train.iters", "train.pose_lr", "train.seed", "train.device"):
         with pytest.raises(ParamError, match=f"unknown parameter {key}"):
-            pipeline.status("synthetic", overrides=TINY + [f"{key}=1"], artifacts=artifacts)
+            runner.status("synthetic", overrides=TINY + [f"{key}=1"], artifacts=artifacts)
 
 
 def test_neus_barf_preset_reuses_the_front_end(tiny_run):
     artifacts, _ = tiny_run
-    report = pipeline.run("synthetic", overrides=TINY, preset="neus-barf", artifacts=artifacts)
+    report = runner.run("synthetic", overrides=TINY, preset="neus-barf", artifacts=artifacts)
     assert report["features"] == report["matching"] == report["reference"] == "reused"
     assert report["schedule"] == report["anchors"] == "computed"
     barf = current(artifacts, "successors", "neus-barf")
@@ -186,10 +186,10 @@ def test_neus_barf_preset_reuses_the_front_end(tiny_run):
     ev = io.load_json(current(artifacts, "evaluate", "neus-barf") / "evaluation.json")
     assert [r["label"] for r in ev["poses"]] == ["initial", "anchors"]
     # the default run's pointers did not move
-    assert pipeline.status("synthetic", overrides=TINY, artifacts=artifacts)["evaluate"][0] == "fresh"
+    assert runner.status("synthetic", overrides=TINY, artifacts=artifacts)["evaluate"][0] == "fresh"
     # alpha is not used by the uniform schedule: the schedule reruns (its recipe changed), writes the
     # same bytes, and nothing after it is recomputed
-    again = pipeline.run("synthetic", overrides=TINY + ["schedule.alpha=0.3"], preset="neus-barf", artifacts=artifacts)
+    again = runner.run("synthetic", overrides=TINY + ["schedule.alpha=0.3"], preset="neus-barf", artifacts=artifacts)
     assert again["schedule"] == "computed"
     assert {s for s, how in again.items() if how == "computed"} == {"schedule"}
 
@@ -198,7 +198,7 @@ def test_the_photos_alone_share_the_gt_pose_reference_surface(tiny_run):
     """The GT-pose reference reads only the pixels of the method's ingest (READS) and the layout's own
     cameras and masks: a run on the photos alone reuses the calibrated, masked run's version."""
     artifacts, _ = tiny_run
-    report = pipeline.run("synthetic", until="reference_surface", overrides=TINY, preset="photos-alone",
+    report = runner.run("synthetic", until="reference_surface", overrides=TINY, preset="photos-alone",
                           artifacts=artifacts)
     assert report["ingest"] == report["ground_truth"] == "computed"  # no masks, K a guess: other bytes
     assert report["reference_surface"] == "reused"
@@ -212,7 +212,7 @@ def test_max_rounds_stops_after_the_first_successor_round(tiny_run):
     successors.final_image_size=0 (coarse-to-fine over image resolution) it trains at the images' own
     128 px while the anchors trained at train.image_size (32 px)."""
     artifacts, _ = tiny_run
-    report = pipeline.run("synthetic", overrides=TINY + ["successors.max_rounds=1", "successors.final_iters=45",
+    report = runner.run("synthetic", overrides=TINY + ["successors.max_rounds=1", "successors.final_iters=45",
                                                          "successors.final_image_size=0"],
                           until="successors", artifacts=artifacts)
     assert report["anchors"] == "reused" and report["successors"] == "computed"
@@ -227,7 +227,7 @@ def test_max_rounds_stops_after_the_first_successor_round(tiny_run):
 
 def test_refine_placed_off_learns_only_the_new_views(tiny_run):
     artifacts, _ = tiny_run
-    report = pipeline.run("synthetic", overrides=TINY + ["successors.refine_placed=false", "successors.max_rounds=2",
+    report = runner.run("synthetic", overrides=TINY + ["successors.refine_placed=false", "successors.max_rounds=2",
                                                          "successors.sfm_restart=none", "successors.polish_steps=0"],
                           until="successors", artifacts=artifacts)
     assert report["anchors"] == "reused" and report["successors"] == "computed"
@@ -255,7 +255,7 @@ def test_the_last_round_can_restart_every_view_from_the_matches_sfm(tiny_run, tm
     artifacts, report = tiny_run
     copy = tmp_path / "artifacts"
     shutil.copytree(artifacts, copy, symlinks=True)
-    kept = pipeline.run("synthetic", only="successors", overrides=[*TINY, "successors.sfm_restart=none"], artifacts=copy)
+    kept = runner.run("synthetic", only="successors", overrides=[*TINY, "successors.sfm_restart=none"], artifacts=copy)
     for where, fp, restarted in ((artifacts, report.fingerprints["successors"], True),
                                  (copy, kept.fingerprints["successors"], False)):
         succ = where / "synthetic" / "successors" / fp
@@ -274,8 +274,8 @@ def test_a_round_gates_only_the_views_it_does_not_keep(tiny_run):
     from manifoldneus import posefree
 
     artifacts, _ = tiny_run
-    store = pipeline.Store(artifacts, "synthetic")
-    resolved = pipeline.resolve_params(pipeline.load_stages(), overrides=TINY)
+    store = runner.Store(artifacts, "synthetic")
+    resolved = runner.resolve_params(runner.load_stages(), overrides=TINY)
     cfg = posefree.RoundConfig.from_sections(lambda name: resolved[name])
     inputs = posefree.load_inputs(**{s: store.version_dir(s, store.current(s)) for s in posefree.INPUT_STAGES})
     ids = np.flatnonzero(inputs.train_mask)
@@ -312,8 +312,8 @@ def test_a_video_of_an_object_comes_out_with_every_frame_posed(tmp_path):
         writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     writer.release()
     overrides = [o for o in TINY if not o.startswith("ingest.synthetic")] + [f"ingest.video_frames={n}"]
-    pipeline.run(str(clip), overrides=overrides, artifacts=tmp_path / "artifacts")
-    store = pipeline.Store(tmp_path / "artifacts", pipeline.resolve_scene(str(clip)).name)
+    runner.run(str(clip), overrides=overrides, artifacts=tmp_path / "artifacts")
+    store = runner.Store(tmp_path / "artifacts", runner.resolve_scene(str(clip)).name)
     out = store.version_dir("export", store.current("export"))
     meta = json.loads((out / "transforms.json").read_text())
     assert len(meta["frames"]) == n and "test_filenames" not in meta  # nothing held out: no cameras to score it
@@ -342,16 +342,16 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
             exif[0x0112] = 3 if i == 4 else 1  # IMG_0004 asks viewers to turn it upside down
             Image.fromarray(image).save(photos / f"IMG_{i:04d}.jpg", quality=95, exif=exif)
     artifacts = tmp_path / "artifacts"
-    report = pipeline.run(str(photos), overrides=TINY, artifacts=artifacts)
+    report = runner.run(str(photos), overrides=TINY, artifacts=artifacts)
     assert report["evaluate"] == "computed" and report["export"] == "computed"
-    name = pipeline.resolve_scene(str(photos)).name
+    name = runner.resolve_scene(str(photos)).name
     ev = io.load_json(artifacts / name / "evaluate" / report.fingerprints["evaluate"] / "evaluation.json")
     assert ev["has_ground_truth"] is False and "poses" not in ev
     final = ev["intrinsics"]["final"]
     assert final["focal_px"] > 0 and "focal_err_pct" not in final and "ground_truth" not in ev["intrinsics"]
-    text = pipeline.run_summary(str(photos), report, artifacts)
+    text = runner.run_summary(str(photos), report, artifacts)
     line = next(x for x in text.splitlines() if x.startswith("camera ("))
-    assert line == pipeline.camera_line(ev["intrinsics"]) and "ground truth" not in line
+    assert line == runner.camera_line(ev["intrinsics"]) and "ground truth" not in line
     assert "rotation" not in text  # no pose scores without ground truth
     # the export hands the photos over as they came (the JPEGs' bytes), but for the one a viewer would turn
     exported = artifacts / name / "export" / report.fingerprints["export"]
@@ -367,14 +367,14 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     assert "no ground truth" in page and "not available" not in page and "NeuS-BARF" not in page
     assert "| surface |" in page and line in page  # each stage's time, and the camera the run estimated
     # pycolmap's reference SfM is evaluation: photos without cameras skip it, unless asked for
-    store = pipeline.Store(artifacts, name)
+    store = runner.Store(artifacts, name)
     reference = store.version_dir("reference", report.fingerprints["reference"])
     assert io.load_json(reference / "manifest.json")["metrics"]["skipped"] is True
     assert not io.load_arrays(reference / "poses.zarr", ["registered"])["registered"].any()
-    st = pipeline.status(str(photos), overrides=[*TINY, "reference.when=always"], artifacts=artifacts)
+    st = runner.status(str(photos), overrides=[*TINY, "reference.when=always"], artifacts=artifacts)
     assert st["reference"][0] != "fresh" and st["anchors"][0] == "fresh"  # the method never read it
     with pytest.raises(ParamError, match="reference.when=always"):  # the anchors cannot start from a skipped one
-        pipeline.run(str(photos), until="anchors", overrides=[*TINY, "anchors.pose_init=reference"],
+        runner.run(str(photos), until="anchors", overrides=[*TINY, "anchors.pose_init=reference"],
                      artifacts=artifacts)
 
 
@@ -394,7 +394,7 @@ def test_the_summary_of_a_run_too_small_to_score_still_ends_well(tiny_run, monke
         return ev
 
     monkeypatch.setattr(runner.inspect, "load_evaluation", two_views)
-    text = pipeline.run_summary("synthetic", report, artifacts)
+    text = runner.run_summary("synthetic", report, artifacts)
     assert "poses (round_2, 2 views): not scored against ground truth, fewer than 3 views: no Sim3" in text
     for verb, label in (("view", "viewer:"), ("report", "report:")):
         line = next(x for x in text.splitlines() if x.startswith(label))
@@ -404,11 +404,11 @@ def test_the_summary_of_a_run_too_small_to_score_still_ends_well(tiny_run, monke
 def test_the_camera_line_names_a_lens_distortion_found():
     intr = {"source": "exif", "start": {"focal_px": 500.0, "principal_point_px": [160.0, 120.0]},
             "final": {"focal_px": 512.3, "principal_point_px": [160.0, 120.0], "distortion": [0.031, 0.0, 0.0, 0.0]}}
-    assert pipeline.camera_line(intr) == ("camera (exif): focal 512.3 px, principal point (160.0, 120.0); "
+    assert runner.camera_line(intr) == ("camera (exif): focal 512.3 px, principal point (160.0, 120.0); "
                                           "self-calibrated from 500.0 px, (160.0, 120.0); lens distortion k1 +0.0310 "
                                           "(removed from the images)")
     intr["final"]["distortion"] = [0.0, 0.0, 0.0, 0.0]  # none found: nothing to say
-    assert "distortion" not in pipeline.camera_line(intr)
+    assert "distortion" not in runner.camera_line(intr)
 
 
 def test_a_colmap_models_poses_seed_the_anchors(tmp_path):
@@ -429,9 +429,9 @@ def test_a_colmap_models_poses_seed_the_anchors(tmp_path):
         io.save_png(folder / "images" / export.image_filename(name), scene.images[i])
     export.write_colmap_text(folder / "sparse" / "0", scene.names, scene.K, model, 128, 128)
     artifacts = tmp_path / "artifacts"
-    report = pipeline.run(str(folder), until="anchors", artifacts=artifacts,
+    report = runner.run(str(folder), until="anchors", artifacts=artifacts,
                           overrides=TINY + ["anchors.pose_init=input"])
-    store = pipeline.Store(artifacts, pipeline.resolve_scene(str(folder)).name)
+    store = runner.Store(artifacts, runner.resolve_scene(str(folder)).name)
     anchors_dir = store.version_dir("anchors", report.fingerprints["anchors"])
     assert io.load_json(anchors_dir / "round_0" / "round.json")["init"]["method"] == "input"
     start = io.load_arrays(anchors_dir / "initial_poses.zarr")
@@ -440,4 +440,4 @@ def test_a_colmap_models_poses_seed_the_anchors(tmp_path):
     assert np.allclose(start["w2c"][ids, :3, :3], model[ids, :3, :3], atol=1e-9)
     assert np.abs(start["w2c"][ids, :3, :3] - scene.w2c[ids, :3, :3]).max() > 1e-3
     with pytest.raises(ParamError, match="sparse/0"):
-        pipeline.run("synthetic", until="anchors", artifacts=artifacts, overrides=TINY + ["anchors.pose_init=input"])
+        runner.run("synthetic", until="anchors", artifacts=artifacts, overrides=TINY + ["anchors.pose_init=input"])

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+import runner
 import pipeline
 from bench import sweep
 from manifoldneus.data import io
@@ -74,7 +75,7 @@ def test_a_run_that_fails_does_not_stop_the_other(cluster, tmp_path, capsys):
     assert "synthetic: 2 stages, 2 ran" in out
     assert f"{too_few}: FAILED: stage ingest failed: SceneError" in err
     assert err.strip().splitlines()[-1].startswith(f"error: 1 of 2 failed: {too_few} (stage ingest failed")
-    assert pipeline.Store(artifacts, "synthetic").current("ground_truth") is not None
+    assert runner.Store(artifacts, "synthetic").current("ground_truth") is not None
     # a rerun picks up from the cache
     assert pipeline.main([*args[:1], *args[3:]]) == 0
     assert "synthetic: 2 stages, 0 ran (0 s), 2 cached" in capsys.readouterr().out
@@ -98,7 +99,7 @@ def run_when_both_are_ready(barrier: Path, artifacts: Path):
 
     import stages.ingest as ingest
 
-    pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)  # imports, code hashes: as far as a run goes
+    runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)  # imports, code hashes: as far as a run goes
     barrier.mkdir(exist_ok=True)
     (barrier / distributed.get_worker().address.replace("/", "_")).touch()
     while len(list(barrier.iterdir())) < 2:
@@ -106,7 +107,7 @@ def run_when_both_are_ready(barrier: Path, artifacts: Path):
     real = ingest.run
     ingest.run = lambda ctx: (time.sleep(2), real(ctx))
     try:
-        return pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+        return runner.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
     finally:
         ingest.run = real
 

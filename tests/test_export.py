@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-import pipeline
+import runner
 from manifoldneus.data import artifacts, io
 from manifoldneus.geometry import cameras
 from manifoldneus.output import export
@@ -126,7 +126,7 @@ def test_the_export_stage_writes_the_final_cameras_in_the_input_frame(tiny_run):
     import trimesh
 
     artifacts_dir, _ = tiny_run
-    versions = pipeline.Store(artifacts_dir, "synthetic").lineage("export")
+    versions = runner.Store(artifacts_dir, "synthetic").lineage("export")
     out = versions["export"]
     final = artifacts.load_round(versions["successors"] / "final")
     placed = final["placed"].astype(bool)
@@ -238,7 +238,7 @@ def test_nerfstudio_reads_the_export_when_installed(tiny_run):
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
     artifacts_dir, _ = tiny_run
-    out = pipeline.Store(artifacts_dir, "synthetic").lineage("export")["export"]
+    out = runner.Store(artifacts_dir, "synthetic").lineage("export")["export"]
     meta = json.loads((out / export.TRANSFORMS).read_text())
     parsed = NerfstudioDataParserConfig(data=out, orientation_method="none", center_method="none",
                                         auto_scale_poses=False, train_split_fraction=1.0,

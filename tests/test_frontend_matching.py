@@ -72,7 +72,7 @@ def cam(azimuth_deg: float, elevation_deg: float = 50.0, dist: float = 3.0) -> n
 
 
 class FakeCtx:
-    """The part of pipeline.Context that the stages use."""
+    """The part of runner.Context that the stages use."""
 
     def __init__(self, module, out: Path, inputs: dict, params=None, scene="test"):
         self.params = params if params is not None else module.Params()

@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-import pipeline
+import runner
 from manifoldneus.geometry import cameras
 from manifoldneus.data import io, scenes
 from manifoldneus.config import ParamError
@@ -166,10 +166,10 @@ def test_empty_folder_has_no_layout(tmp_path):
 def test_synthetic_through_pipeline_and_gt_apart(artifacts, view_stride):
     from manifoldneus.data import synthetic
 
-    pipeline.run("synthetic-3", until="ground_truth", artifacts=artifacts,
+    runner.run("synthetic-3", until="ground_truth", artifacts=artifacts,
                  overrides=["ingest.synthetic_views=5", "ingest.synthetic_resolution=48",
                             "ingest.synthetic_surface_points=1000", f"ingest.view_stride={view_stride}"])
-    store = pipeline.Store(artifacts, "synthetic-3")
+    store = runner.Store(artifacts, "synthetic-3")
     views_dir = store.version_dir("ingest", store.current("ingest"))
     assert "w2c" not in io.array_names(views_dir / "views.zarr")  # no pose leaks into the views
     assert len(io.load_json(views_dir / "views.json")["names"]) == len(range(0, 5, view_stride))
@@ -268,7 +268,7 @@ def test_too_few_views_stop_at_ingest(tmp_path, tiny_synthetic, artifacts):
     for i in range(2):
         io.save_png(folder / f"v{i}.png", tiny_synthetic.images[i])
     with pytest.raises(SceneError, match="2 view\\(s\\); pose-free reconstruction needs at least 3"):
-        pipeline.run(str(folder), until="ingest", artifacts=artifacts)
+        runner.run(str(folder), until="ingest", artifacts=artifacts)
 
 
 def test_too_few_anchors_are_said_at_the_schedule_before_any_training(artifacts):
@@ -277,10 +277,10 @@ def test_too_few_anchors_are_said_at_the_schedule_before_any_training(artifacts)
     with pytest.raises(SceneError, match=r"1 anchor view\(s\) of \d+ schedulable \(12 views, 2 held out by "
                                          r"split.holdout_every=8, \d+ outside .* needs at least 2: --set "
                                          r"schedule.anchor_percent=\d+ or --set split.holdout_every=0") as e:
-        pipeline.run("synthetic", until="anchors", overrides=over, artifacts=artifacts)
+        runner.run("synthetic", until="anchors", overrides=over, artifacts=artifacts)
     assert not list((artifacts / "synthetic").glob("anchors/*"))
     hint = re.search(r"schedule.anchor_percent=\d+", str(e.value)).group(0)
-    pipeline.run("synthetic", until="schedule", overrides=[*over, hint], artifacts=artifacts)  # the hint works
+    runner.run("synthetic", until="schedule", overrides=[*over, hint], artifacts=artifacts)  # the hint works
 
 
 def test_neus_layout_with_an_images_folder(idr_folder, tiny_synthetic):
@@ -301,7 +301,7 @@ def test_identical_photos_stop_at_covisibility(tmp_path, artifacts):
     for i in range(8):
         io.save_png(folder / f"v{i}.png", image)
     with pytest.raises(RuntimeError, match="no pair of the 8 views has 15 or more verified matches"):
-        pipeline.run(str(folder), until="anchors", artifacts=artifacts)
+        runner.run(str(folder), until="anchors", artifacts=artifacts)
 
 
 def test_two_photos_with_one_name_are_refused_naming_both(plain_folder, tiny_synthetic):
@@ -405,7 +405,7 @@ def test_own_photos_hold_no_view_out_unless_asked(tmp_path, artifacts):
         io.save_png(folder / f"IMG_{i:04d}.png", im)
     over = ["ingest.intrinsics=[" + ",".join(str(float(x)) for x in scene.K[0][[0, 1, 0, 1], [0, 1, 2, 2]]) + "]"]
     for extra, held in (([], []), (["split.holdout_without_cameras=true"], [0, 8])):
-        pipeline.run(str(folder), until="schedule", overrides=[*over, *extra], artifacts=artifacts)
+        runner.run(str(folder), until="schedule", overrides=[*over, *extra], artifacts=artifacts)
         sched = io.load_json(artifacts / resolve_scene(str(folder)).name / "schedule" / "current" / "schedule.json")
         assert sched["held_out_views"] == held
         unscheduled = sorted(set(held) | set(sched["excluded_views"]))  # excluded: not co-visible with the rest
@@ -429,7 +429,7 @@ def test_a_video_becomes_its_sharpest_frames(tmp_path, artifacts):
     writer.release()
     ref = resolve_scene(str(clip))
     assert ref.kind == "video" and ref.name.startswith("turntable-")
-    pipeline.run(str(clip), until="ground_truth", overrides=["ingest.video_frames=10"], artifacts=artifacts)
+    runner.run(str(clip), until="ground_truth", overrides=["ingest.video_frames=10"], artifacts=artifacts)
     ingest = artifacts / ref.name / "ingest" / "current"
     meta = io.load_json(ingest / "views.json")
     assert meta["layout"] == "video" and not meta["has_cameras"]
@@ -439,7 +439,7 @@ def test_a_video_becomes_its_sharpest_frames(tmp_path, artifacts):
     assert not io.load_json(artifacts / ref.name / "ground_truth" / "current" / "gt.json")["has_poses"]
     (tmp_path / "broken.mp4").write_bytes(b"not a video")
     with pytest.raises(SceneError, match="broken.mp4: not a video OpenCV can read"):
-        pipeline.run(str(tmp_path / "broken.mp4"), until="ingest", artifacts=artifacts)
+        runner.run(str(tmp_path / "broken.mp4"), until="ingest", artifacts=artifacts)
 
 
 def test_known_lens_distortion_is_removed_at_ingest(tmp_path, artifacts):
@@ -468,7 +468,7 @@ def test_known_lens_distortion_is_removed_at_ingest(tmp_path, artifacts):
 
     errors = {}
     for distortion in ([], dist.tolist()):
-        pipeline.run(str(folder), until="ingest", artifacts=artifacts,
+        runner.run(str(folder), until="ingest", artifacts=artifacts,
                      overrides=[given, f"ingest.distortion=[{','.join(map(str, distortion))}]"])
         images = io.load_arrays(artifacts / ref.name / "ingest" / "current" / "views.zarr", ["images"])["images"]
         inner = (slice(None), slice(24, 104), slice(24, 104))  # away from the border the lens leaves uncovered
@@ -477,4 +477,4 @@ def test_known_lens_distortion_is_removed_at_ingest(tmp_path, artifacts):
         assert meta["undistorted_with"] == distortion
     assert errors[4] < 0.35 * errors[0], errors
     with pytest.raises(ParamError, match=r"ingest.distortion: .* is not \[k1, k2, p1, p2\]"):
-        pipeline.run(str(folder), until="ingest", artifacts=artifacts, overrides=[given, "ingest.distortion=[0.1]"])
+        runner.run(str(folder), until="ingest", artifacts=artifacts, overrides=[given, "ingest.distortion=[0.1]"])

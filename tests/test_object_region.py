@@ -8,7 +8,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-import pipeline
+import runner
 from manifoldneus.data import artifacts, io, synthetic
 from manifoldneus.geometry import cameras, object_region, pose_metrics
 from manifoldneus.output import meshing
@@ -141,9 +141,9 @@ def _final_round_points(store):
 @pytest.fixture(scope="module")
 def on_a_floor(tmp_path_factory):
     root = tmp_path_factory.mktemp("floor")
-    pipeline.run("synthetic", until="mesh", artifacts=root, overrides=[
+    runner.run("synthetic", until="mesh", artifacts=root, overrides=[
         *TINY, "ingest.synthetic_floor=true", "ingest.load_masks=false", "reference_surface.enabled=false"])
-    return pipeline.Store(root, "synthetic")
+    return runner.Store(root, "synthetic")
 
 
 def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_it(on_a_floor):
@@ -249,8 +249,8 @@ def test_the_free_space_term_is_on_without_masks_only(on_a_floor, tmp_path):
     round_0 = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / "round.json")
     assert round_0["train"]["loss_status"]["free_space"] == "on"
     assert "loss_free_space" in round_0["history"][-1]
-    pipeline.run("synthetic", until="anchors", artifacts=tmp_path, overrides=[*TINY, "reference_surface.enabled=false"])
-    masked = pipeline.Store(tmp_path, "synthetic")
+    runner.run("synthetic", until="anchors", artifacts=tmp_path, overrides=[*TINY, "reference_surface.enabled=false"])
+    masked = runner.Store(tmp_path, "synthetic")
     masked_0 = io.load_json(masked.version_dir("anchors", masked.current("anchors")) / "round_0" / "round.json")
     assert "free_space" not in masked_0["train"]["loss_status"]  # the masks say where the object is
     # the lines of sight it carves: from the anchors' cameras (at their initial poses) to the points they observe

@@ -20,35 +20,35 @@ FAST_SYNTH = ["ingest.synthetic_views=6", "ingest.synthetic_resolution=64", "ing
 
 
 def test_rerun_reuses_and_param_roundtrip_does_not_recompute(artifacts):
-    first = pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+    first = runner.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
     assert first == {"ingest": "computed", "ground_truth": "computed"}
-    again = pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+    again = runner.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
     assert again == {"ingest": "reused", "ground_truth": "reused"}
 
     changed = FAST_SYNTH + ["ingest.load_masks=false"]
-    st = pipeline.status("synthetic", overrides=changed, artifacts=artifacts)
+    st = runner.status("synthetic", overrides=changed, artifacts=artifacts)
     assert st["ingest"][0] == "stale"
     assert any("ingest.load_masks" in r for r in st["ingest"][1])
     assert st["ground_truth"][0] == "stale"  # same section, and its upstream changed
-    assert pipeline.run("synthetic", until="ingest", overrides=changed, artifacts=artifacts)["ingest"] == "computed"
+    assert runner.run("synthetic", until="ingest", overrides=changed, artifacts=artifacts)["ingest"] == "computed"
 
     # setting it back: the earlier version is current again without recomputation
-    st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
+    st = runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
     assert st["ingest"][0] == "stale" and any("will be reused" in r for r in st["ingest"][1])
-    assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {"ingest": "reused"}
-    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"] == ("fresh", [])
+    assert runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {"ingest": "reused"}
+    assert runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"] == ("fresh", [])
 
 
 @needs_dtu
 def test_scan24_ingest_fresh_stale_fresh(artifacts):
-    assert pipeline.run("scan24", until="ingest", artifacts=artifacts) == {"ingest": "computed"}
-    assert pipeline.status("scan24", artifacts=artifacts)["ingest"] == ("fresh", [])
-    st = pipeline.status("scan24", overrides=["ingest.downscale=2"], artifacts=artifacts)
+    assert runner.run("scan24", until="ingest", artifacts=artifacts) == {"ingest": "computed"}
+    assert runner.status("scan24", artifacts=artifacts)["ingest"] == ("fresh", [])
+    st = runner.status("scan24", overrides=["ingest.downscale=2"], artifacts=artifacts)
     assert st["ingest"][0] == "stale"
-    assert pipeline.run("scan24", until="ingest", overrides=["ingest.downscale=2"], artifacts=artifacts) == {
+    assert runner.run("scan24", until="ingest", overrides=["ingest.downscale=2"], artifacts=artifacts) == {
         "ingest": "computed"}
-    assert pipeline.run("scan24", until="ingest", artifacts=artifacts) == {"ingest": "reused"}
-    assert pipeline.status("scan24", artifacts=artifacts)["ingest"] == ("fresh", [])
+    assert runner.run("scan24", until="ingest", artifacts=artifacts) == {"ingest": "reused"}
+    assert runner.status("scan24", artifacts=artifacts)["ingest"] == ("fresh", [])
 
 
 def test_failure_mid_write_publishes_nothing_and_rerun_succeeds(artifacts, monkeypatch):
@@ -62,57 +62,57 @@ def test_failure_mid_write_publishes_nothing_and_rerun_succeeds(artifacts, monke
 
     monkeypatch.setattr(ingest, "run", crashing_run)
     with pytest.raises(KeyboardInterrupt):
-        pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
-    store = pipeline.Store(artifacts, "synthetic")
+        runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    store = runner.Store(artifacts, "synthetic")
     assert store.current("ingest") is None
     versions = [p for p in store.stage_dir("ingest").iterdir() if not p.name.startswith(".")]
     assert versions == []  # only a .failed-* folder with the log, never a fingerprint folder
-    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "missing"
+    assert runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "missing"
 
     monkeypatch.setattr(ingest, "run", real_run)
-    assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {
+    assert runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {
         "ingest": "computed"}
     manifest = store.manifest("ingest")
     assert manifest["metrics"]["n_views"] == 6 and manifest["peak_rss_mib"] > 0
 
 
 def test_gc_refuses_while_a_run_is_in_progress(artifacts):
-    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
-    store = pipeline.Store(artifacts, "synthetic")
+    runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    store = runner.Store(artifacts, "synthetic")
     with store.in_use():  # as a run in another process holds it
-        with pytest.raises(pipeline.PipelineError, match="a run on .* is in progress"):
-            pipeline.gc(artifacts, "synthetic")
+        with pytest.raises(runner.PipelineError, match="a run on .* is in progress"):
+            runner.gc(artifacts, "synthetic")
         # runs of one scene go side by side: each version has its own lock
-        assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH + ["ingest.downscale=2"],
+        assert runner.run("synthetic", until="ingest", overrides=FAST_SYNTH + ["ingest.downscale=2"],
                             artifacts=artifacts) == {"ingest": "computed"}
 
 
 def test_truncated_manifest_is_a_missing_version(artifacts):
-    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
-    store = pipeline.Store(artifacts, "synthetic")
+    runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    store = runner.Store(artifacts, "synthetic")
     manifest = store.version_dir("ingest", store.current("ingest")) / "manifest.json"
     manifest.write_text(manifest.read_text()[:40])
-    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "missing"
-    assert pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {"ingest": "computed"}
+    assert runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "missing"
+    assert runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts) == {"ingest": "computed"}
     assert json.loads(manifest.read_text())["stage"] == "ingest"
 
 
 def test_force_recomputes(artifacts):
-    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
-    out = pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, force=["ingest"], artifacts=artifacts)
+    runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    out = runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, force=["ingest"], artifacts=artifacts)
     assert out == {"ingest": "computed"}
 
 
 def test_code_change_makes_stage_stale(artifacts, monkeypatch):
-    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
     monkeypatch.setattr(runner.fingerprint, "code_hash", lambda stage: "edited")
-    st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
+    st = runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
     assert st["ingest"][0] == "stale" and any("code" in r for r in st["ingest"][1])
 
 
 def test_code_hash_covers_package_modules():
-    stages = pipeline.load_stages()
-    files = {p.relative_to(pipeline.ROOT).as_posix() for p in runner.fingerprint._code_files(stages["ingest"].module)}
+    stages = runner.load_stages()
+    files = {p.relative_to(runner.ROOT).as_posix() for p in runner.fingerprint._code_files(stages["ingest"].module)}
     assert {"stages/ingest.py", "manifoldneus/data/scenes.py", "manifoldneus/data/io.py", "manifoldneus/config.py",
             "manifoldneus/geometry/cameras.py"} <= files
     # imported only inside functions (scenes.py, evaluate.py): still the stages' code
@@ -122,7 +122,7 @@ def test_code_hash_covers_package_modules():
     # ...but not modules the stage never reaches, nor the stage registry
     assert "train.py" not in files and "stages/__init__.py" not in files
     # the C++ a reached module compiles at run time is part of the stage's code
-    anchors = {p.relative_to(pipeline.ROOT).as_posix() for p in runner.fingerprint._code_files(stages["anchors"].module)}
+    anchors = {p.relative_to(runner.ROOT).as_posix() for p in runner.fingerprint._code_files(stages["anchors"].module)}
     assert "manifoldneus/neural/csrc/grid_encoding.cpp" in anchors and "manifoldneus/neural/csrc/grid_encoding.cpp" not in files
     # the front end writes and reads through manifoldneus.data.artifacts, which must not reach the trainer
     covisibility = {p.name for p in runner.fingerprint._code_files(stages["covisibility"].module)}
@@ -133,14 +133,14 @@ def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_p
     """scenes.py imports synthetic.py inside a function: an edit there must reach ingest's fingerprint."""
     copy = tmp_path / "src"
     for folder in ("manifoldneus", "stages"):
-        shutil.copytree(pipeline.ROOT / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(runner.ROOT / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
     monkeypatch.setattr(runner.common, "ROOT", copy)
-    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
-    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
+    runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    assert runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
 
     generator = copy / "manifoldneus" / "data" / "synthetic.py"
     generator.write_text(generator.read_text() + "\n# an edit to the scene generator\n")
-    st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
+    st = runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
     assert st["ingest"][0] == "stale" and any("code" in r for r in st["ingest"][1])
 
 
@@ -169,7 +169,7 @@ def test_editing_a_lazily_imported_module_makes_the_stage_stale(artifacts, tmp_p
 )
 def test_bad_set_is_a_clear_error(artifacts, override, message):
     with pytest.raises(ParamError, match=message):
-        pipeline.run("synthetic", until="ingest", overrides=[override], artifacts=artifacts)
+        runner.run("synthetic", until="ingest", overrides=[override], artifacts=artifacts)
 
 
 def test_an_unavailable_device_stops_the_run_before_its_first_stage(artifacts, monkeypatch):
@@ -177,28 +177,28 @@ def test_an_unavailable_device_stops_the_run_before_its_first_stage(artifacts, m
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # as on this CPU machine
     with pytest.raises(ParamError, match=r"run.device: 'cuda' is not available on this machine .* use cpu"):
-        pipeline.run("synthetic", until="anchors", overrides=["run.device=cuda"], artifacts=artifacts)
+        runner.run("synthetic", until="anchors", overrides=["run.device=cuda"], artifacts=artifacts)
     with pytest.raises(ParamError, match=r"run.device: 'gpu' is not a torch device"):
-        pipeline.run("synthetic", until="anchors", overrides=["run.device=gpu"], artifacts=artifacts)
+        runner.run("synthetic", until="anchors", overrides=["run.device=gpu"], artifacts=artifacts)
     assert not artifacts.exists()  # nothing computed, nothing created
     # stages that never touch torch's device do not need it
-    assert pipeline.run("synthetic", until="ingest", overrides=[*FAST_SYNTH, "run.device=cuda"], artifacts=artifacts)
+    assert runner.run("synthetic", until="ingest", overrides=[*FAST_SYNTH, "run.device=cuda"], artifacts=artifacts)
 
 
 def test_unknown_stage_and_profile(artifacts):
-    with pytest.raises(pipeline.PipelineError, match="unknown stage 'featurez'"):
-        pipeline.run("synthetic", until="featurez", artifacts=artifacts)
+    with pytest.raises(runner.PipelineError, match="unknown stage 'featurez'"):
+        runner.run("synthetic", until="featurez", artifacts=artifacts)
     with pytest.raises(ParamError, match="unknown profile"):
-        pipeline.run("synthetic", until="ingest", profile="turbo", artifacts=artifacts)
+        runner.run("synthetic", until="ingest", profile="turbo", artifacts=artifacts)
 
 
 def test_the_quick_profile_is_fast_with_half_the_surface():
     """params.yaml's profiles resolve; `quick` differs from `fast` in the surface's and the GT-pose
     reference's lengths (halved) and the field (fast's finer hashed finest level needs fast's iterations)
     only: the same rounds, so the same poses; both keep the fitted views' bands between rounds."""
-    stages = pipeline.load_stages()
-    fast, quick = (pipeline.resolve_params(stages, profile=name) for name in ("fast", "quick"))
-    pipeline.resolve_params(stages, profile="paper")
+    stages = runner.load_stages()
+    fast, quick = (runner.resolve_params(stages, profile=name) for name in ("fast", "quick"))
+    runner.resolve_params(stages, profile="paper")
     lengths = [("surface", "iters"), ("reference_surface", "iters")]
     for section, key in lengths:
         assert 2 * getattr(quick[section], key) == getattr(fast[section], key), (section, key)
@@ -213,7 +213,7 @@ def test_unknown_params_yaml_section(tmp_path, artifacts):
     bad = tmp_path / "params.yaml"
     bad.write_text("profile: fast\nprofiles: {fast: {}}\ningestt: {downscale: 2}\n")
     with pytest.raises(ParamError, match="unknown section 'ingestt'"):
-        pipeline.run("synthetic", until="ingest", params_path=bad, artifacts=artifacts)
+        runner.run("synthetic", until="ingest", params_path=bad, artifacts=artifacts)
 
 
 def test_cli_reports_errors_without_traceback(capsys, artifacts):
@@ -229,7 +229,7 @@ def test_a_multi_scene_run_as_a_script_reports_a_bad_stage_in_one_line(artifacts
     import subprocess
     import sys
 
-    done = subprocess.run([sys.executable, str(pipeline.ROOT / "pipeline.py"), "run", "--scene", "synthetic",
+    done = subprocess.run([sys.executable, str(runner.ROOT / "pipeline.py"), "run", "--scene", "synthetic",
                            "--scene", "synthetic-1", "--until", "nope", "--artifacts", str(artifacts)],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 2, done.stderr
@@ -321,13 +321,13 @@ def test_gc_acts_only_on_versions_it_wrote_inside_the_artifacts_root(capsys, tmp
     out = capsys.readouterr().out
     assert "would remove 1 old version(s)" in out and "MiB" in out
     old = [p for p in (artifacts / "synthetic" / "ingest").iterdir() if runner.store._our_version(p.parent, p)
-           and p.name != pipeline.Store(artifacts, "synthetic").current("ingest")]
+           and p.name != runner.Store(artifacts, "synthetic").current("ingest")]
     assert len(old) == 1 and old[0].is_dir()
     assert pipeline.main(["gc", "--scene", "synthetic", "--artifacts", str(artifacts)]) == 0
     assert f"removed {old[0]}" in capsys.readouterr().out and not old[0].exists()
     assert all(f.read_text() == "a user's file" for f in user_files)
     assert (artifacts / "synthetic" / "ingest" / "0123456789ab").is_dir()
-    assert pipeline.Store(artifacts, "synthetic").current("ingest") is not None
+    assert runner.Store(artifacts, "synthetic").current("ingest") is not None
 
 
 def test_gc_drops_leftovers_of_ended_runs_only(artifacts):
@@ -335,8 +335,8 @@ def test_gc_drops_leftovers_of_ended_runs_only(artifacts):
     import socket
     import subprocess
 
-    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
-    store = pipeline.Store(artifacts, "synthetic")
+    runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    store = runner.Store(artifacts, "synthetic")
     fp = store.current("ingest")
     dead = subprocess.Popen(["true"])
     dead.wait()
@@ -350,7 +350,7 @@ def test_gc_drops_leftovers_of_ended_runs_only(artifacts):
     (store.scene_dir / ".runs").mkdir(exist_ok=True)
     (store.scene_dir / ".runs" / f"{host}-{dead.pid}.json").write_text(
         '{"pointer": "current", "versions": {"ingest": "0123456789ab"}}')
-    removed = pipeline.gc(artifacts, "synthetic")
+    removed = runner.gc(artifacts, "synthetic")
     assert sorted(p.name for p in removed) == sorted([names["dead"], names["published"], names["orphaned"]])
     assert (store.stage_dir("ingest") / names["alive"]).is_dir()
     assert (store.stage_dir("ingest") / names["resumable"]).is_dir()
@@ -365,7 +365,7 @@ def test_gc_keeps_what_a_killed_run_resumes_from(tmp_path):
     import sys
 
     artifacts = tmp_path / "artifacts"
-    cmd = [sys.executable, str(pipeline.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "anchors",
+    cmd = [sys.executable, str(runner.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "anchors",
            "--artifacts", str(artifacts), *sum((["--set", s] for s in TINY), [])]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     for line in proc.stderr:
@@ -373,7 +373,7 @@ def test_gc_keeps_what_a_killed_run_resumes_from(tmp_path):
             proc.send_signal(signal.SIGKILL)
             break
     proc.wait()
-    store = pipeline.Store(artifacts, "synthetic")
+    store = runner.Store(artifacts, "synthetic")
     [(record_path, record)] = store.interrupted_runs()
     finished = {stage: fp for stage, fp in record["versions"].items() if store.is_complete(stage, fp)}
     assert {"ingest", "features", "matching", "schedule"} <= set(finished) and "anchors" not in finished
@@ -382,10 +382,10 @@ def test_gc_keeps_what_a_killed_run_resumes_from(tmp_path):
     ckpt.mkdir(parents=True, exist_ok=True)
     orphan = store.stage_dir("anchors") / ".ckpt-ba9876543210"
     orphan.mkdir()
-    removed = pipeline.gc(artifacts, "synthetic")
+    removed = runner.gc(artifacts, "synthetic")
     assert orphan in removed and ckpt.is_dir() and record_path.is_file()
     assert all(store.is_complete(stage, fp) for stage, fp in finished.items())
-    removed = pipeline.gc(artifacts, "synthetic", drop_interrupted=True)
+    removed = runner.gc(artifacts, "synthetic", drop_interrupted=True)
     assert not any(store.is_complete(stage, fp) for stage, fp in finished.items()) and not ckpt.exists()
     assert record_path in removed and not record_path.exists()
 
@@ -405,20 +405,20 @@ def test_gc_keeps_the_checkpoint_a_ctrl_c_left_to_resume(artifacts, monkeypatch)
 
     monkeypatch.setattr(features, "run", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        pipeline.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
+        runner.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
     monkeypatch.undo()
-    store = pipeline.Store(artifacts, "synthetic")
+    store = runner.Store(artifacts, "synthetic")
     [record] = (store.scene_dir / ".runs").glob("*.json")
     dead = subprocess.Popen(["true"])
     dead.wait()
     record.rename(record.with_name(f"{socket.gethostname()}-{dead.pid}.json"))  # as when the process has ended
     [ckpt] = store.stage_dir("features").glob(".ckpt-*")
-    pipeline.gc(artifacts, "synthetic")
+    runner.gc(artifacts, "synthetic")
     assert ckpt.is_dir() and store.current("ingest") is not None
 
 
 def test_a_run_that_ends_leaves_no_record(artifacts):
-    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
     assert not list((artifacts / "synthetic" / ".runs").glob("*.json"))
 
 
@@ -428,7 +428,7 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path):
     import sys
 
     artifacts = tmp_path / "artifacts"
-    cmd = [sys.executable, str(pipeline.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "reference",
+    cmd = [sys.executable, str(runner.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "reference",
            "--artifacts", str(artifacts), *sum((["--set", s] for s in TINY), [])]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     seen = []
@@ -441,8 +441,8 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path):
     assert proc.wait() == 143, "".join(seen) + rest
     assert "terminated (SIGTERM): nothing half-written was published" in rest
     assert "Traceback" not in rest and "***" not in rest and len(rest.strip().splitlines()) <= 2, rest
-    store = pipeline.Store(artifacts, "synthetic")
-    for stage in pipeline.load_stages():
+    store = runner.Store(artifacts, "synthetic")
+    for stage in runner.load_stages():
         stage_dir = store.stage_dir(stage)
         for entry in stage_dir.iterdir() if stage_dir.is_dir() else ():
             assert not entry.name.startswith(".tmp-"), f"left behind: {entry}"
@@ -469,27 +469,27 @@ def test_ctrl_c_while_a_version_folder_is_being_set_up_leaves_no_temporary_folde
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with pytest.raises(KeyboardInterrupt):
-            pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+            runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
     finally:
         signal.signal(signal.SIGINT, previous)
-    names = [p.name for p in pipeline.Store(artifacts, "synthetic").stage_dir("ingest").iterdir()]
+    names = [p.name for p in runner.Store(artifacts, "synthetic").stage_dir("ingest").iterdir()]
     assert not [n for n in names if n.startswith(".tmp-")] and any(n.startswith(".failed-") for n in names), names
 
 
 def test_a_damaged_version_is_named_and_never_read(capsys, artifacts):
-    pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
-    store = pipeline.Store(artifacts, "synthetic")
+    runner.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+    store = runner.Store(artifacts, "synthetic")
     version = store.version_dir("ingest", store.current("ingest"))
     chunks = sorted((p for p in (version / "views.zarr").rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
     chunks[-1].unlink()  # the largest chunk (image data): zarr would read it back as zeros
-    state, reasons = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"]
+    state, reasons = runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"]
     assert state == "damaged" and f"{chunks[-1]}: missing" in reasons
-    with pytest.raises(pipeline.PipelineError, match=r"ingest version \w+ is damaged \(.*: missing\); rebuild it: "
+    with pytest.raises(runner.PipelineError, match=r"ingest version \w+ is damaged \(.*: missing\); rebuild it: "
                                                      r"python pipeline.py run --scene synthetic --artifacts \S+ "
                                                      r"(--set \S+ )+--until ingest --force ingest"):
-        pipeline.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
-    with pytest.raises(pipeline.PipelineError, match="ingest version .* is damaged"):  # read as another's upstream
-        pipeline.run("synthetic", only="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+        runner.run("synthetic", until="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
+    with pytest.raises(runner.PipelineError, match="ingest version .* is damaged"):  # read as another's upstream
+        runner.run("synthetic", only="ground_truth", overrides=FAST_SYNTH, artifacts=artifacts)
     args = ["--scene", "synthetic", "--artifacts", str(artifacts)]
     assert pipeline.main(["verify", *args]) == 1
     out = capsys.readouterr().out
@@ -503,12 +503,12 @@ def test_a_damaged_version_is_named_and_never_read(capsys, artifacts):
     data = bytearray(victim.read_bytes())
     data[0] ^= 0xFF
     victim.write_bytes(bytes(data))
-    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
+    assert runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["ingest"][0] == "fresh"
     assert pipeline.main(["verify", *args]) == 1
     assert "content differs from its hash" in capsys.readouterr().out
     # a stage computed again re-hashes what it reads: it never caches a result of the damaged bytes
-    with pytest.raises(pipeline.PipelineError, match="ingest version .* is damaged .*content differs"):
-        pipeline.run("synthetic", until="ground_truth", force=["ground_truth"], overrides=FAST_SYNTH, artifacts=artifacts)
+    with pytest.raises(runner.PipelineError, match="ingest version .* is damaged .*content differs"):
+        runner.run("synthetic", until="ground_truth", force=["ground_truth"], overrides=FAST_SYNTH, artifacts=artifacts)
     # a manifest cut short: the version is named, not left out
     assert pipeline.main(["run", *args, *sets, "--until", "ground_truth", "--force", "ingest"]) == 0
     manifest = store.version_dir("ground_truth", store.current("ground_truth")) / "manifest.json"
@@ -523,19 +523,19 @@ def test_upstream_recomputed_to_the_same_bytes_leaves_downstream_fresh(artifacts
     bytes did not change, is reused."""
     copy = tmp_path / "src"
     for folder in ("manifoldneus", "stages"):
-        shutil.copytree(pipeline.ROOT / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(runner.ROOT / folder, copy / folder, ignore=shutil.ignore_patterns("__pycache__"))
     monkeypatch.setattr(runner.common, "ROOT", copy)
-    pipeline.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
+    runner.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
     stage = copy / "stages" / "ingest.py"
     stage.write_text(stage.read_text() + "\n# a comment-only edit\n")
-    st = pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
+    st = runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)
     assert st["ingest"][0] == "stale"
     assert st["features"] == ("stale", ["upstream ingest is not computed with these parameters"])
-    report = pipeline.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
+    report = runner.run("synthetic", until="features", overrides=FAST_SYNTH, artifacts=artifacts)
     assert report == {"ingest": "computed", "features": "reused"}
-    assert pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["features"] == ("fresh", [])
+    assert runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)["features"] == ("fresh", [])
     # different bytes do reach it
-    report = pipeline.run("synthetic", until="features", overrides=[*FAST_SYNTH, "ingest.synthetic_views=7"],
+    report = runner.run("synthetic", until="features", overrides=[*FAST_SYNTH, "ingest.synthetic_views=7"],
                           artifacts=artifacts)
     assert report == {"ingest": "computed", "features": "computed"}
 
@@ -543,16 +543,16 @@ def test_upstream_recomputed_to_the_same_bytes_leaves_downstream_fresh(artifacts
 def test_until_brings_up_only_the_stages_it_depends_on():
     """`--until S` is S's upstream closure, not the prefix of the stage list: anchors does not
     train the GT-pose NeuS or score pycolmap; pycolmap's scoring does not run the front-end."""
-    stages = pipeline.load_stages()
-    anchors = pipeline.select(stages, "anchors", None)
+    stages = runner.load_stages()
+    anchors = runner.select(stages, "anchors", None)
     assert anchors == ["ingest", "features", "matching", "covisibility", "spectral", "schedule", "reference", "anchors"]
-    assert pipeline.select(stages, "evaluate_poses", None) == ["ingest", "ground_truth", "reference", "evaluate_poses"]
-    assert pipeline.select(stages, None, None) == list(stages)  # the whole DAG, in order
+    assert runner.select(stages, "evaluate_poses", None) == ["ingest", "ground_truth", "reference", "evaluate_poses"]
+    assert runner.select(stages, None, None) == list(stages)  # the whole DAG, in order
     # several stages: the union of their closures (a bench scores pycolmap and the rounds in one run)
-    both = pipeline.select(stages, ["evaluate", "evaluate_poses"], None)
-    assert set(both) == set(pipeline.select(stages, "evaluate", None)) | {"ground_truth", "evaluate_poses"}
+    both = runner.select(stages, ["evaluate", "evaluate_poses"], None)
+    assert set(both) == set(runner.select(stages, "evaluate", None)) | {"ground_truth", "evaluate_poses"}
     for name in stages:  # every selection is closed under upstream and in DAG order
-        chosen = pipeline.select(stages, name, None)
+        chosen = runner.select(stages, name, None)
         assert chosen[-1] == name and all(up in chosen[:chosen.index(n)] for n in chosen for up in stages[n].upstream)
 
 
@@ -566,28 +566,28 @@ def test_ground_truth_is_structurally_private(monkeypatch):
     sneaky.Params = object
     monkeypatch.setitem(__import__("sys").modules, "stages.sneaky", sneaky)
     monkeypatch.setattr(registry, "STAGES", ["ingest", "ground_truth", "sneaky"])
-    with pytest.raises(pipeline.PipelineError, match="may not read ground truth"):
-        pipeline.load_stages()
+    with pytest.raises(runner.PipelineError, match="may not read ground truth"):
+        runner.load_stages()
 
 
 def test_context_refuses_undeclared_inputs(artifacts):
-    stages = pipeline.load_stages()
-    resolved = pipeline.resolve_params(stages)
-    ctx = pipeline.Context(stages["ingest"], resolved, pipeline.Store(artifacts, "x"), {}, artifacts, 
-                           pipeline.resolve_scene("synthetic"), None)
-    with pytest.raises(pipeline.PipelineError, match="declared upstream"):
+    stages = runner.load_stages()
+    resolved = runner.resolve_params(stages)
+    ctx = runner.Context(stages["ingest"], resolved, runner.Store(artifacts, "x"), {}, artifacts, 
+                           runner.resolve_scene("synthetic"), None)
+    with pytest.raises(runner.PipelineError, match="declared upstream"):
         ctx.input("ground_truth")
 
 
 def test_the_anchors_read_pycolmaps_sfm_only_when_they_start_from_it(artifacts):
     """`reference` is an upstream of `anchors` only with anchors.pose_init = reference: otherwise neither
     its version nor its parameters enter the anchors' fingerprint, and `--until anchors` does not run it."""
-    stages = pipeline.load_stages()
-    scene = pipeline.resolve_scene("synthetic")
+    stages = runner.load_stages()
+    scene = runner.resolve_scene("synthetic")
 
     def anchors_fingerprint(*over):
-        resolved = pipeline.resolve_params(stages, overrides=[*FAST_SYNTH, *over])
-        return pipeline.compute_fingerprints(pipeline.for_params(stages, resolved), resolved, scene)["anchors"]
+        resolved = runner.resolve_params(stages, overrides=[*FAST_SYNTH, *over])
+        return runner.compute_fingerprints(runner.for_params(stages, resolved), resolved, scene)["anchors"]
 
     plain = anchors_fingerprint()
     assert "reference" not in plain["upstream"]
@@ -596,22 +596,22 @@ def test_the_anchors_read_pycolmaps_sfm_only_when_they_start_from_it(artifacts):
     assert "reference" in from_reference["upstream"]
     assert anchors_fingerprint("anchors.pose_init=reference", "reference.num_threads=2")["fingerprint"] != \
         from_reference["fingerprint"]
-    assert "reference" in pipeline.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)  # still a stage
-    selected = pipeline.select(pipeline.for_params(stages, pipeline.resolve_params(stages, overrides=FAST_SYNTH)),
+    assert "reference" in runner.status("synthetic", overrides=FAST_SYNTH, artifacts=artifacts)  # still a stage
+    selected = runner.select(runner.for_params(stages, runner.resolve_params(stages, overrides=FAST_SYNTH)),
                                "anchors", None)
     assert "reference" not in selected and "schedule" in selected
 
 
 def test_missing_scene_and_data_root_say_where_they_looked(tmp_path):
     with pytest.raises(SceneError, match="does not exist.*synthetic"):
-        pipeline.resolve_scene("scan24", data_root=tmp_path / "nowhere")
+        runner.resolve_scene("scan24", data_root=tmp_path / "nowhere")
     with pytest.raises(SceneError, match="looked in:.*dtu/scan99"):
-        pipeline.resolve_scene("scan99", data_root=tmp_path)
+        runner.resolve_scene("scan99", data_root=tmp_path)
 
 
 def test_manifest_records_params_versions_and_timing(artifacts):
-    pipeline.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
-    path = pipeline.Store(artifacts, "synthetic").version_dir("ingest", pipeline.Store(artifacts, "synthetic").current("ingest"))
+    runner.run("synthetic", until="ingest", overrides=FAST_SYNTH, artifacts=artifacts)
+    path = runner.Store(artifacts, "synthetic").version_dir("ingest", runner.Store(artifacts, "synthetic").current("ingest"))
     m = json.loads((path / "manifest.json").read_text())
     assert m["params"]["ingest"]["synthetic_views"] == 6
     assert {"numpy", "zarr"} <= set(m["libraries"])
@@ -622,25 +622,25 @@ def test_presets_keep_their_own_current_pointers(tmp_path, artifacts):
     params = tmp_path / "params.yaml"
     params.write_text("profile: fast\nprofiles: {fast: {}}\npresets: {small: {ingest: {downscale: 2}}}\n")
     kw = dict(overrides=FAST_SYNTH, artifacts=artifacts, params_path=params, until="ingest")
-    assert pipeline.run("synthetic", **kw) == {"ingest": "computed"}
-    assert pipeline.run("synthetic", preset="small", **kw) == {"ingest": "computed"}
-    default = pipeline.Store(artifacts, "synthetic").current("ingest")
-    small = pipeline.Store(artifacts, "synthetic", "small").current("ingest")
+    assert runner.run("synthetic", **kw) == {"ingest": "computed"}
+    assert runner.run("synthetic", preset="small", **kw) == {"ingest": "computed"}
+    default = runner.Store(artifacts, "synthetic").current("ingest")
+    small = runner.Store(artifacts, "synthetic", "small").current("ingest")
     assert default != small  # the preset did not move the default run's pointer
-    assert pipeline.status("synthetic", **{k: v for k, v in kw.items() if k != "until"})["ingest"][0] == "fresh"
+    assert runner.status("synthetic", **{k: v for k, v in kw.items() if k != "until"})["ingest"][0] == "fresh"
     with pytest.raises(ParamError, match="unknown preset 'big'"):
-        pipeline.run("synthetic", preset="big", **kw)
+        runner.run("synthetic", preset="big", **kw)
 
 
 def test_exponent_floats_without_a_dot_are_numbers():
-    stages = pipeline.load_stages()
-    resolved = pipeline.resolve_params(stages, overrides=["anchors.pose_lr=5e-4"])
+    stages = runner.load_stages()
+    resolved = runner.resolve_params(stages, overrides=["anchors.pose_lr=5e-4"])
     assert resolved["anchors"].pose_lr == 5e-4
     # and on/off, which YAML reads as booleans, are the words of a choice
     for word in ("on", "off"):
-        assert pipeline.resolve_params(stages, overrides=[f"meshing.crop_to_object={word}"])["meshing"].crop_to_object == word
+        assert runner.resolve_params(stages, overrides=[f"meshing.crop_to_object={word}"])["meshing"].crop_to_object == word
     with pytest.raises(ParamError, match="anchors.pose_lr: expected a number"):
-        pipeline.resolve_params(stages, overrides=["anchors.pose_lr=fast"])
+        runner.resolve_params(stages, overrides=["anchors.pose_lr=fast"])
 
 
 def test_imports_point_one_way():
@@ -650,10 +650,10 @@ def test_imports_point_one_way():
     above = {"manifoldneus": ("stages", "runner", "pipeline", "report", "bench"),
              "stages": ("runner", "pipeline", "report", "bench"), "runner": ("pipeline", "report", "bench")}
     for package, forbidden in above.items():
-        files = sorted((pipeline.ROOT / package).rglob("*.py"))
+        files = sorted((runner.ROOT / package).rglob("*.py"))
         assert files, package
         for path in files:
-            module = ".".join(path.relative_to(pipeline.ROOT).with_suffix("").parts).removesuffix(".__init__")
+            module = ".".join(path.relative_to(runner.ROOT).with_suffix("").parts).removesuffix(".__init__")
             names = runner.fingerprint._imported_names(path, module)
             assert not [n for n in names if n.split(".")[0] in forbidden], (path, sorted(names))
     # Inside the library: a sub-package imports itself, config and the floors below it only (the table;
@@ -669,7 +669,7 @@ def test_imports_point_one_way():
         "__init__": set(),
         "posefree": {"geometry", "neural", "sfm", "scheduling", "data", "output"},
     }
-    library = pipeline.ROOT / "manifoldneus"
+    library = runner.ROOT / "manifoldneus"
     crossings = set()
     for path in sorted(library.rglob("*.py")):
         rel = path.relative_to(library)
@@ -686,15 +686,26 @@ def test_imports_point_one_way():
     assert not crossings, sorted(crossings)
 
 
+def test_callers_reach_the_runner_directly():
+    """pipeline.py is the command line only: it re-exports nothing of the runner, and tests and benches
+    call ``runner.X``, so the runner's API has one name."""
+    import re
+
+    assert not hasattr(pipeline, "Store") and not hasattr(pipeline, "resolve_params")
+    for path in [*sorted((runner.ROOT / "tests").glob("*.py")), *sorted((runner.ROOT / "bench").glob("*.py"))]:
+        used = set(re.findall(r"\bpipeline\.(\w+)", path.read_text())) - {"py", "main", "_parser"}
+        assert not used, (path.name, sorted(used))
+
+
 def test_no_module_edits_sys_path():
     """The project is installed (pyproject.toml) and the benches run as modules (`python -m bench.X`):
     no file puts a folder on sys.path to find the code, except profile_step's `--code`, which
     measures another checkout's package on purpose."""
     edits = []
-    for path in [pipeline.ROOT / "pipeline.py", *sorted(pipeline.ROOT.glob("[mrsb]*/**/*.py"))]:
+    for path in [runner.ROOT / "pipeline.py", *sorted(runner.ROOT.glob("[mrsb]*/**/*.py"))]:
         for n, line in enumerate(path.read_text().splitlines(), 1):
             if "sys.path.insert" in line or "sys.path.append" in line:
-                edits.append(f"{path.relative_to(pipeline.ROOT)}:{n}")
+                edits.append(f"{path.relative_to(runner.ROOT)}:{n}")
     assert [e.split(":")[0] for e in edits] == ["bench/profile_step.py"], edits
 
 
@@ -712,7 +723,7 @@ def test_shared_artifacts_are_named_by_their_readers_only():
     assert len(names) > 20 and artifacts.MESH in names
     round_literal = re.compile(r"""["']round_[0-9{*]|/ *["']final["']""")  # "final" alone is also a JSON key
     for package in ("manifoldneus", "stages", "runner", "bench"):
-        for path in sorted((pipeline.ROOT / package).rglob("*.py")):
+        for path in sorted((runner.ROOT / package).rglob("*.py")):
             if path.name == "artifacts.py":
                 continue
             text = path.read_text()
@@ -744,17 +755,17 @@ def test_printed_commands_are_quoted_and_keep_the_runs_options(tmp_path, artifac
     import shlex
 
     folder = tmp_path / "my photos"
-    hint = pipeline.cli_hint("run", str(folder), "--until", "anchors", artifacts=artifacts, data_root=tmp_path,
+    hint = runner.cli_hint("run", str(folder), "--until", "anchors", artifacts=artifacts, data_root=tmp_path,
                              overrides=["ingest.intrinsics=[500, 500, 96, 96]"], preset="neus-barf")
     words = shlex.split(hint)
     assert words[:3] == ["python", "pipeline.py", "run"]
     assert words[words.index("--scene") + 1] == str(folder) and words[words.index("--artifacts") + 1] == str(artifacts)
     assert words[words.index("--set") + 1] == "ingest.intrinsics=[500, 500, 96, 96]"
     assert words[words.index("--data-root") + 1] == str(tmp_path) and words[-2:] == ["--until", "anchors"]
-    assert "--artifacts" not in pipeline.cli_hint("run", "scan24")  # the defaults are not repeated
+    assert "--artifacts" not in runner.cli_hint("run", "scan24")  # the defaults are not repeated
     # the hint of a run whose upstream is missing carries the run's own options
-    with pytest.raises(pipeline.PipelineError) as e:
-        pipeline.run("synthetic", only="features", overrides=["ingest.downscale=2"], artifacts=artifacts)
+    with pytest.raises(runner.PipelineError) as e:
+        runner.run("synthetic", only="features", overrides=["ingest.downscale=2"], artifacts=artifacts)
     pasted = shlex.split(str(e.value).split("run: ", 1)[1])
     assert "ingest.downscale=2" in pasted and str(artifacts) in pasted
 
@@ -793,7 +804,7 @@ def test_every_expected_failure_is_one_line(artifacts, capsys, monkeypatch):
     def read_only(self):
         raise PermissionError(13, "Permission denied", str(artifacts / "synthetic" / ".lock"))
 
-    monkeypatch.setattr(pipeline.Store, "in_use", read_only)
+    monkeypatch.setattr(runner.Store, "in_use", read_only)
     assert pipeline.main(args) == 2
     assert "error: no permission to write" in capsys.readouterr().err
 
@@ -822,7 +833,7 @@ def test_a_run_ends_with_a_summary_and_colmap_logs_only_to_log_txt(artifacts, ca
     assert "synthetic: 2 stages, 2 ran" in out and "  ingest             ran" in out
     assert pipeline.main([*args, "--only", "reference"]) == 0  # pycolmap (its upstream is ingest alone)
     out, err = capfd.readouterr()
-    store = pipeline.Store(artifacts, "synthetic")
+    store = runner.Store(artifacts, "synthetic")
     log = (store.version_dir("reference", store.current("reference")) / "log.txt").read_text()
     assert "feature_extraction" in log  # COLMAP's own lines, in the stage's log...
     assert "feature_extraction" not in err + out  # ...not on the console
@@ -878,26 +889,26 @@ def test_a_stage_declaring_one_key_of_a_section_is_not_rerun_by_the_others(tmp_p
     """mesh, export and evaluate declare run.device, not all of run: run.threads and run.seed do not
     enter their fingerprints (the rounds, which read them, do), and reading an undeclared key of
     the section is an error."""
-    stages = pipeline.load_stages()
+    stages = runner.load_stages()
     assert stages["mesh"].keys_read()["run"] == {"device"} and stages["anchors"].keys_read()["run"] is None
-    base = pipeline.resolve_params(stages, overrides=TINY)
-    other = pipeline.resolve_params(stages, overrides=[*TINY, "run.threads=1"])
-    scene = pipeline.resolve_scene("synthetic")
-    own_base, own_other = (pipeline.own_ingredients(stages, r, scene) for r in (base, other))
+    base = runner.resolve_params(stages, overrides=TINY)
+    other = runner.resolve_params(stages, overrides=[*TINY, "run.threads=1"])
+    scene = runner.resolve_scene("synthetic")
+    own_base, own_other = (runner.own_ingredients(stages, r, scene) for r in (base, other))
     changed = {name for name in stages if own_base[name]["params"] != own_other[name]["params"]}
     assert {"anchors", "successors"} <= changed and not changed & {"mesh", "export", "evaluate"}
-    ctx = pipeline.Context(stages["mesh"], base, pipeline.Store(tmp_path, "x"), {}, tmp_path, scene, None)
+    ctx = runner.Context(stages["mesh"], base, runner.Store(tmp_path, "x"), {}, tmp_path, scene, None)
     assert ctx.section("run").device == "cpu"
-    with pytest.raises(pipeline.PipelineError, match=r"mesh reads run.threads without declaring it"):
+    with pytest.raises(runner.PipelineError, match=r"mesh reads run.threads without declaring it"):
         ctx.section("run").threads
     # the GT-pose reference meshes without the object crop: the crop's keys do not retrain it
     for key in ("meshing.silhouette_vote=0.5", "meshing.crop_to_object=off", "meshing.support_margin=0.1"):
-        own_crop = pipeline.own_ingredients(stages, pipeline.resolve_params(stages, overrides=[*TINY, key]), scene)
+        own_crop = runner.own_ingredients(stages, runner.resolve_params(stages, overrides=[*TINY, key]), scene)
         changed = {name for name in stages if own_base[name]["params"] != own_crop[name]["params"]}
         assert changed == {"mesh"}, (key, changed)
-    broken = pipeline.Stage("mesh", stages["mesh"].module, (), ("meshing", "run.devices"), ())
-    with pytest.raises(pipeline.PipelineError, match=r"declares \['run.devices'\]: no such key"):
-        pipeline.stage_params(broken, base)
+    broken = runner.Stage("mesh", stages["mesh"].module, (), ("meshing", "run.devices"), ())
+    with pytest.raises(runner.PipelineError, match=r"declares \['run.devices'\]: no such key"):
+        runner.stage_params(broken, base)
 
 
 def _another_value(value):
@@ -919,9 +930,9 @@ def test_every_key_reaches_exactly_the_stages_that_declare_it():
     make it stale and none it reads is left out."""
     import dataclasses
 
-    stages = pipeline.load_stages()
-    base = pipeline.resolve_params(stages, overrides=TINY)
-    before = {name: pipeline.stage_params(stage, base) for name, stage in stages.items()}
+    stages = runner.load_stages()
+    base = runner.resolve_params(stages, overrides=TINY)
+    before = {name: runner.stage_params(stage, base) for name, stage in stages.items()}
     checked = 0
     for section, values in base.items():
         if not dataclasses.is_dataclass(values):  # the profile's and preset's names
@@ -937,7 +948,7 @@ def test_every_key_reaches_exactly_the_stages_that_declare_it():
             for name, stage in stages.items():
                 reads = stage.keys_read()
                 declared = section in reads and (reads[section] is None or f.name in reads[section])
-                changed = pipeline.stage_params(stage, altered) != before[name]
+                changed = runner.stage_params(stage, altered) != before[name]
                 assert changed == declared, (name, f"{section}.{f.name}")
             checked += 1
     assert checked > 100

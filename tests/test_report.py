@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from test_end_to_end import TINY, current
 
+import runner
 import pipeline
 import report
 from manifoldneus.data import io
@@ -35,8 +36,8 @@ FASTER = TINY + ["schedule.successors_per_round=8", "reference_surface.enabled=f
 @pytest.fixture(scope="module")
 def built_report(tmp_path_factory):
     artifacts = tmp_path_factory.mktemp("report") / "artifacts"
-    pipeline.run("synthetic", overrides=FASTER, artifacts=artifacts)
-    pipeline.run("synthetic", overrides=FASTER, preset="neus-barf", artifacts=artifacts)
+    runner.run("synthetic", overrides=FASTER, artifacts=artifacts)
+    runner.run("synthetic", overrides=FASTER, preset="neus-barf", artifacts=artifacts)
     out = artifacts.parent / "report"
     page = report.build_report("synthetic", artifacts, out)
     return artifacts, page

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-import pipeline
+import runner
 from manifoldneus.data import artifacts as readers
 from manifoldneus.data import io
 from conftest import bitwise_on_cpu
@@ -22,7 +22,7 @@ UNTIL = "successors"  # and "reference" beside it: pycolmap is part of the finge
 
 
 def version(root, stage):
-    store = pipeline.Store(root, "synthetic")
+    store = runner.Store(root, "synthetic")
     return store.version_dir(stage, store.current(stage))
 
 
@@ -56,24 +56,24 @@ def assert_same(a: dict, b: dict) -> None:
 @pytest.fixture(scope="module")
 def first(tmp_path_factory):
     root = tmp_path_factory.mktemp("repro") / "first"
-    pipeline.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=root)
+    runner.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=root)
     return {**outputs(root), "content": content(root)}
 
 
 def content(root) -> dict:
     """The content digest of each stage's version: equal bytes, equal digests, so later stages reuse."""
-    store = pipeline.Store(root, "synthetic")
+    store = runner.Store(root, "synthetic")
     return {stage: store.content(stage, store.current(stage)) for stage in ("anchors", UNTIL)}
 
 
 def test_two_runs_from_an_empty_cache_write_the_same_artifacts(first, tmp_path):
-    pipeline.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=tmp_path / "second")
+    runner.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=tmp_path / "second")
     assert_same(first, {**outputs(tmp_path / "second"), "content": content(tmp_path / "second")})
 
 
 def test_interrupted_and_resumed_equals_uninterrupted(first, tmp_path, monkeypatch):
     root = tmp_path / "interrupted"
-    pipeline.run("synthetic", until="anchors", overrides=REPRO, artifacts=root)
+    runner.run("synthetic", until="anchors", overrides=REPRO, artifacts=root)
     step = Trainer.train_step
     hits = []
 
@@ -85,15 +85,15 @@ def test_interrupted_and_resumed_equals_uninterrupted(first, tmp_path, monkeypat
 
     monkeypatch.setattr(Trainer, "train_step", killed)
     with pytest.raises(KeyboardInterrupt):
-        pipeline.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=root)
+        runner.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=root)
     assert hits == [15]
-    store = pipeline.Store(root, "synthetic")
+    store = runner.Store(root, "synthetic")
     assert store.current(UNTIL) is None  # nothing published
     (ckpt_dir,) = store.stage_dir(UNTIL).glob(".ckpt-*")
     assert {p.name for p in ckpt_dir.iterdir()} >= {"round_1.pt", "round_2.pt"}
 
     monkeypatch.setattr(Trainer, "train_step", step)
-    pipeline.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=root)
+    runner.run("synthetic", until=[UNTIL, "reference"], overrides=REPRO, artifacts=root)
     log = (version(root, UNTIL) / "log.txt").read_text()
     assert "round 2: resumed from round_2.pt at step 10" in log
     assert_same(first, {**outputs(root), "content": content(root)})  # the same bytes: later stages reuse theirs
@@ -108,17 +108,17 @@ def test_sigkill_at_random_moments_then_rerun(first, tmp_path):
     import time
 
     root = tmp_path / "killed"
-    cmd = [sys.executable, str(pipeline.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "anchors",
+    cmd = [sys.executable, str(runner.ROOT / "pipeline.py"), "run", "--scene", "synthetic", "--until", "anchors",
            "--artifacts", str(root), *sum((["--set", s] for s in REPRO), [])]
     rng = np.random.default_rng(11)
-    store = pipeline.Store(root, "synthetic")
+    store = runner.Store(root, "synthetic")
     killed = 0
     for delay in rng.uniform(2.0, 10.0, size=3):
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         time.sleep(delay)
         proc.send_signal(signal.SIGKILL)
         killed += proc.wait() == -signal.SIGKILL  # else it had finished before the kill
-        for stage in pipeline.load_stages():  # the stages' folders; .locks holds lock files, not versions
+        for stage in runner.load_stages():  # the stages' folders; .locks holds lock files, not versions
             stage_dir = store.stage_dir(stage)
             for entry in stage_dir.iterdir() if stage_dir.is_dir() else ():
                 if not entry.name.startswith(".") and not entry.is_symlink():

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import pipeline
+import runner
 from manifoldneus.geometry import cameras
 from manifoldneus.data import io, scenes, synthetic
 from tests.test_end_to_end import TINY
@@ -20,20 +20,20 @@ OFF = [f"ingest.intrinsics=[{0.7 * F_TRUE}, {0.7 * F_TRUE}, {RES / 2}, {RES / 2}
 
 
 def evaluation(root):
-    store = pipeline.Store(root, "synthetic")
+    store = runner.Store(root, "synthetic")
     return io.load_json(store.version_dir("evaluate", store.current("evaluate")) / "evaluation.json")
 
 
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
     root = tmp_path_factory.mktemp("calibrated")
-    pipeline.run("synthetic", until="evaluate", overrides=UNMASKED, artifacts=root)
+    runner.run("synthetic", until="evaluate", overrides=UNMASKED, artifacts=root)
     return evaluation(root)
 
 
 def test_given_intrinsics_are_held_fixed_unless_refined(tmp_path, calibrated):
-    pipeline.run("synthetic", until="anchors", overrides=[*UNMASKED, *OFF], artifacts=tmp_path)
-    store = pipeline.Store(tmp_path, "synthetic")
+    runner.run("synthetic", until="anchors", overrides=[*UNMASKED, *OFF], artifacts=tmp_path)
+    store = runner.Store(tmp_path, "synthetic")
     K = io.load_arrays(store.version_dir("anchors", store.current("anchors")) / "initial_poses.zarr")["K"]
     assert np.allclose(K[:, 0, 0], 0.7 * F_TRUE)  # given = known: auto keeps them
     assert calibrated["intrinsics"]["source"] == "calibrated"
@@ -41,7 +41,7 @@ def test_given_intrinsics_are_held_fixed_unless_refined(tmp_path, calibrated):
 
 
 def test_a_focal_length_30_percent_off_is_recovered(tmp_path, calibrated):
-    pipeline.run("synthetic", overrides=[*UNMASKED, *OFF, "anchors.intrinsics=refine"], artifacts=tmp_path)
+    runner.run("synthetic", overrides=[*UNMASKED, *OFF, "anchors.intrinsics=refine"], artifacts=tmp_path)
     out = evaluation(tmp_path)
     intr = out["intrinsics"]
     assert intr["source"] == "given" and intr["start"]["focal_err_pct"] == pytest.approx(30.0, abs=1e-6)
@@ -49,7 +49,7 @@ def test_a_focal_length_30_percent_off_is_recovered(tmp_path, calibrated):
     assert intr["final"]["focal_err_pct"] < 2.0, intr
     assert np.abs(np.subtract(intr["final"]["principal_point_px"], RES / 2)).max() < 0.02 * RES, intr
     # estimated once on every training view, then held fixed by the anchors' initialisation
-    store = pipeline.Store(tmp_path, "synthetic")
+    store = runner.Store(tmp_path, "synthetic")
     round_0 = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / "round.json")
     calibration = round_0["init"]["calibration"]
     assert calibration["registered"] == calibration["views"] > len(round_0["views"]), calibration
@@ -73,10 +73,10 @@ def test_a_lens_with_radial_distortion_is_estimated_and_removed(tmp_path, calibr
     images and keypoints without it, the poses are as good as the pinhole run's, and the exported images are
     what a pinhole camera with the exported K sees."""
     k1 = -0.8
-    pipeline.run("synthetic", overrides=[*UNMASKED, *OFF, "anchors.intrinsics=refine", f"ingest.synthetic_lens_k1={k1}"],
+    runner.run("synthetic", overrides=[*UNMASKED, *OFF, "anchors.intrinsics=refine", f"ingest.synthetic_lens_k1={k1}"],
                  artifacts=tmp_path)
     out = evaluation(tmp_path)
-    store = pipeline.Store(tmp_path, "synthetic")
+    store = runner.Store(tmp_path, "synthetic")
     calibration = io.load_json(store.version_dir("anchors", store.current("anchors")) / "round_0" / "round.json"
                                )["init"]["calibration"]
     assert calibration["radial_test"]["freed"], calibration
@@ -103,7 +103,7 @@ def test_a_lens_with_radial_distortion_is_estimated_and_removed(tmp_path, calibr
 def test_use_calibration_false_starts_from_the_uncalibrated_guess(tmp_path):
     """The layout's cameras dropped (as for photos copied alone into a folder); the ground truth
     keeps them, so evaluation can score what self-calibration finds."""
-    p = pipeline.resolve_params(pipeline.load_stages(), overrides=[*TINY, "ingest.use_calibration=false"])["ingest"]
+    p = runner.resolve_params(runner.load_stages(), overrides=[*TINY, "ingest.use_calibration=false"])["ingest"]
     views = scenes.read_views(scenes.resolve_scene("synthetic"), p)
     h, w = views["images"].shape[1:3]
     assert views["intrinsics_source"] == "default"
@@ -116,9 +116,9 @@ def test_use_calibration_false_starts_from_the_uncalibrated_guess(tmp_path):
 def test_the_calibration_gives_every_training_views_lines_of_sight(tmp_path):
     """anchors.sight_lines_from=calibration: the self-calibration's reconstruction's lines of sight, brought
     onto the anchors' frame, start at every training view's camera centre, not only the anchors'."""
-    pipeline.run("synthetic", until=["anchors", "ground_truth"], artifacts=tmp_path, overrides=[
+    runner.run("synthetic", until=["anchors", "ground_truth"], artifacts=tmp_path, overrides=[
         *UNMASKED, *OFF, "anchors.intrinsics=refine", "anchors.sight_lines_from=calibration"])
-    store = pipeline.Store(tmp_path, "synthetic")
+    store = runner.Store(tmp_path, "synthetic")
     anchors = store.version_dir("anchors", store.current("anchors"))
     init = io.load_arrays(anchors / "initial_poses.zarr")
     gt = io.load_arrays(store.version_dir("ground_truth", store.current("ground_truth")) / "poses.zarr", ["w2c"])["w2c"]

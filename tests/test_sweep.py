@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-import pipeline
+import runner
 from bench import sweep
 from tests.test_end_to_end import TINY
 
@@ -67,7 +67,7 @@ def test_settings_that_name_one_version_share_it(dirs, capsys, table, values):
 def resolved(dirs, row, stage) -> dict:
     """The resolved parameters recorded in the manifest of the version a sweep row used."""
     artifacts, _ = dirs
-    store = pipeline.Store(artifacts, "synthetic")
+    store = runner.Store(artifacts, "synthetic")
     return json.loads((store.version_dir(stage, row["fingerprints"][stage]) / "manifest.json").read_text())["params"]
 
 
@@ -95,7 +95,7 @@ def test_sparse_views(dirs, capsys):
     assert (every["views"]["total"], second["views"]["total"]) == (20, 10)
     # none held out: every view is an input (holdout_every 8 would hold views 0 and 8 out)
     artifacts, _ = dirs
-    schedule_dir = pipeline.Store(artifacts, "synthetic").version_dir("schedule", second["fingerprints"]["schedule"])
+    schedule_dir = runner.Store(artifacts, "synthetic").version_dir("schedule", second["fingerprints"]["schedule"])
     assert json.loads((schedule_dir / "schedule.json").read_text())["held_out_views"] == []
     assert second["stages"]["ingest"] == second["stages"]["ground_truth"] == "computed"
 
@@ -114,12 +114,12 @@ def test_a_tagged_sweep_from_perturbed_anchors(dirs, capsys):
 
 def test_every_default_setting_resolves():
     """Each table's settings are valid overrides and distinct (no run needed)."""
-    stages = pipeline.load_stages()
+    stages = runner.load_stages()
     for name, table in sweep.TABLES.items():
         settings = sweep.settings_for(name)
         assert len({s.label for s in settings}) == len({s.overrides for s in settings}) == len(settings), name
         for s in settings:
-            pipeline.resolve_params(stages, overrides=list(s.overrides))
+            runner.resolve_params(stages, overrides=list(s.overrides))
         assert set(table.paper) <= {s.label for s in settings} | {f"M = {m}" for m in (15, 25)}, name
 
 

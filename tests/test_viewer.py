@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import runner
 import pipeline
 from manifoldneus.data import artifacts, io
 from manifoldneus.geometry import cameras
@@ -58,7 +59,7 @@ def page(tiny_run, tmp_path_factory):
     artifacts_dir, _ = tiny_run
     path = tmp_path_factory.mktemp("viewer") / "viewer.html"
     assert pipeline.main(["view", "--scene", "synthetic", "--artifacts", str(artifacts_dir), "--out", str(path)]) == 0
-    versions = pipeline.Store(artifacts_dir, "synthetic").lineage("export")
+    versions = runner.Store(artifacts_dir, "synthetic").lineage("export")
     final = artifacts.load_round(versions["successors"] / "final")
     schedule = io.load_json(versions["schedule"] / "schedule.json")
     run = {"optimised": int((final["placed"] & final["optimised"]).sum()), "held_out": len(schedule["held_out_views"]),
@@ -87,7 +88,7 @@ def test_the_page_holds_the_run_and_needs_no_network(page):
 
 def test_decimated_page_stays_small(tiny_run, tmp_path):
     artifacts_dir, _ = tiny_run
-    path, held = pipeline.view("synthetic", artifacts_dir, out=tmp_path / "small.html", max_faces=1000)
+    path, held = runner.view("synthetic", artifacts_dir, out=tmp_path / "small.html", max_faces=1000)
     data, _ = page_data(path)
     assert held["faces"] == data["mesh"]["n_faces"] <= 1000 < held["faces_full"]
 
@@ -98,7 +99,7 @@ def test_a_write_that_fails_midway_leaves_the_earlier_page(tiny_run, tmp_path, m
     import errno
 
     artifacts_dir, _ = tiny_run
-    path, _ = pipeline.view("synthetic", artifacts_dir, out=tmp_path / "v.html", max_faces=1000)
+    path, _ = runner.view("synthetic", artifacts_dir, out=tmp_path / "v.html", max_faces=1000)
     before = path.read_bytes()
     real = Path.write_text
 
@@ -108,7 +109,7 @@ def test_a_write_that_fails_midway_leaves_the_earlier_page(tiny_run, tmp_path, m
 
     monkeypatch.setattr(Path, "write_text", full_disk)
     with pytest.raises(OSError):
-        pipeline.view("synthetic", artifacts_dir, out=path, max_faces=1000)
+        runner.view("synthetic", artifacts_dir, out=path, max_faces=1000)
     assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["v.html"]
 
 
