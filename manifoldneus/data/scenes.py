@@ -478,11 +478,15 @@ def _colmap_views(path: Path, p) -> dict:
         if d is not None:
             pixels[i] = cameras.undistort_image(pixels[i], K[i], d)
             given[i] = None
-    # the model's poses and points: an input a run may start from (anchors.pose_init = input)
-    w2c = np.stack([cameras.to_4x4(np.asarray(im.cam_from_world().matrix())) for im in images])  # [N,4,4]
-    points = np.array([pt.xyz for pt in rec.points3D.values()]).reshape(-1, 3)  # [P,3]
+    w2c, points = _colmap_poses(rec, images)  # an input a run may start from (anchors.pose_init = input)
     return {"images": np.stack(pixels), "K": K, "names": names, "files": given, "input_w2c": w2c,
             "input_points": points}
+
+
+def _colmap_poses(rec, images) -> tuple[np.ndarray, np.ndarray]:
+    """A COLMAP model's world-to-camera poses [N,4,4] of ``images`` and its points [P,3] (P may be 0)."""
+    w2c = np.stack([cameras.to_4x4(np.asarray(im.cam_from_world().matrix())) for im in images])
+    return w2c, np.array([pt.xyz for pt in rec.points3D.values()]).reshape(-1, 3)
 
 
 def _refuse_mixed_sizes(images: list, labels: list[str], folder: Path, what: str = "image(s)") -> None:
@@ -571,9 +575,8 @@ def _ground_truth_all_views(ref: SceneRef, p) -> dict | None:
                         for i in range(n)])
         return {"w2c": w2c, "normalization": scale_mat.astype(np.float64), "units": "mm"}
     if layout == "colmap":
-        rec, images = _colmap_read(ref.path)
-        w2c = np.stack([cameras.to_4x4(np.asarray(im.cam_from_world().matrix())) for im in images])
-        pts = np.array([pt.xyz for pt in rec.points3D.values()]) if rec.points3D else cameras.camera_centers(w2c)
+        w2c, pts = _colmap_poses(*_colmap_read(ref.path))
+        pts = pts if len(pts) else cameras.camera_centers(w2c)
         centre = np.median(pts, axis=0)
         radius = float(np.percentile(np.linalg.norm(pts - centre, axis=1), 95)) * 1.1 or 1.0
         normalization = cameras.sim3_matrix(radius, np.eye(3), centre)
