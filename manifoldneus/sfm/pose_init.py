@@ -8,9 +8,9 @@ camera frame, ``w2c``, pixel centres at +0.5):
   anchor views (and of the views that bridge them, chosen by ``stages.anchors.init_views``) go into
   a COLMAP database; COLMAP's incremental mapper and bundle adjustment pose them (intrinsics fixed
   or refined); then the gauge: a similarity that puts the middle of the points' robust box at the origin
-  (or their median, ``gauge_centre``) and scales the box's half diagonal
+  (or their median, :class:`GaugeOptions` ``centre``) and scales the box's half diagonal
   (:func:`manifoldneus.geometry.cameras.gauge_from_points`; the foreground points when masks exist) to
-  ``gauge_radius`` (0.8), so the object sits inside the unit sphere. Views COLMAP cannot register get a
+  ``radius`` (0.8), so the object sits inside the unit sphere. Views COLMAP cannot register get a
   registered neighbour's pose, and the reason.
 * :func:`identity_init` ("identity", the paper's wording): every view at the same canonical pose.
 * Successors: :func:`place_successor`: COLMAP's absolute pose of a view's matches to already-optimised
