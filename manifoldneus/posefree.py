@@ -76,7 +76,7 @@ class SceneInputs:
     @property
     def sizes(self) -> np.ndarray:
         """[N,2] (H, W) of every view."""
-        return np.tile(self.views.images.shape[1:3], (len(self.names), 1))
+        return self.views.view_sizes
 
 
 def with_intrinsics(inputs: SceneInputs, K: np.ndarray, distortion: np.ndarray | None = None) -> SceneInputs:
@@ -306,7 +306,7 @@ class Round:
         after = before.clone()
         after[v] = align_poses(t, before[v], t.images[v], None if t.masks is None else t.masks[v], t.K[v],
                                steps=pp.steps, rays=pp.rays, lr=pp.lr, seed=t.run.seed, translation=pp.translation,
-                               progress=progress)
+                               progress=progress, sizes=None if t.sizes is None else t.sizes[v])
         t.set_poses(after)
         b, a = before[v].double().cpu().numpy(), after[v].double().cpu().numpy()  # [m,3,4]
         turn = rotation_angle_deg(a[:, :, :3] @ b[:, :, :3].transpose(0, 2, 1))  # [m]

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus.data import artifacts, io
+from manifoldneus.data.views import own
 from manifoldneus.geometry import cameras
 from manifoldneus.output import evaluation, export, meshing
 from manifoldneus.config import param
@@ -141,7 +142,7 @@ def run(ctx) -> None:
     gltf_from_world = cameras.gltf_from_world(w2c_world[valid])
     export.write_mesh(mesh, ctx.out, gltf_from_world)
 
-    h, w = views.images.shape[1:3]
+    h, w = views.view_sizes[:, 0], views.view_sizes[:, 1]  # [N] each: photos of several sizes, a camera each
     # the last round's tracks over every view (the method's frame; else the SfM points that initialised the
     # anchors, without observations), as COLMAP's points3D and splatfacto's start
     tracks = None
@@ -151,7 +152,7 @@ def run(ctx) -> None:
     else:
         points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
     points = cameras.transform_points(M, np.asarray(points, np.float64).reshape(-1, 3))
-    colours = export.point_colours(points, views.images, views.K, w2c_world, np.flatnonzero(placed))
+    colours = export.point_colours(points, views.images, views.K, w2c_world, np.flatnonzero(placed), views.view_sizes)
     ply = None
     if len(points):
         ply = "sparse_points.ply"
@@ -172,8 +173,8 @@ def run(ctx) -> None:
             for i in np.flatnonzero(exported):
                 if folder == "images" and given[i] is not None:
                     shutil.copyfile(given[i], ctx.out / folder / export.image_filename(views.names[i], suffixes[i]))
-                else:
-                    io.save_png(ctx.out / folder / export.image_filename(views.names[i]), stack[i])
+                else:  # at the view's own size
+                    io.save_png(ctx.out / folder / export.image_filename(views.names[i]), own(stack[i], views.view_sizes[i]))
     export.write_frame(ctx.out / export.FRAME, M, frame, units, how, gltf_from_world)
     ctx.metrics.update(frame=frame, units=units, scale=s, views_exported=int(placed.sum()), held_out_exported=int(held.sum()), sfm_points=len(points),
                        lens_k1_removed=lens_k1,

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus.data import artifacts
+from manifoldneus.data.views import own
 from manifoldneus.config import param
 from manifoldneus.data.io import save_arrays
 
@@ -190,10 +191,11 @@ def run(ctx) -> None:
     src = Path(ctx.input("ingest"))
     meta = artifacts.load_views_meta(src)
     names = list(meta["names"])
-    wanted = ["images"] + (["masks"] if p.use_mask and meta.get("has_masks") else [])
+    wanted = ["images", "sizes"] + (["masks"] if p.use_mask and meta.get("has_masks") else [])
     arrays = artifacts.load_views_arrays(src, wanted)
-    images = arrays["images"]
-    masks = arrays.get("masks")
+    # each view at its own size: the canvas' padding would give SIFT an edge to detect on
+    images = [own(im, hw) for im, hw in zip(arrays["images"], arrays["sizes"])]
+    masks = None if arrays.get("masks") is None else [own(m, hw) for m, hw in zip(arrays["masks"], arrays["sizes"])]
     if p.use_mask and masks is None:
         ctx.log.warning("features.use_mask is on but the scene has no masks: detecting on the whole image")
 

@@ -94,6 +94,10 @@ def run(ctx) -> None:
                                 f"least {MIN_VIEWS} overlapping photos of the object")
     ctx.log.info("read %d views of %dx%d (%s layout): %s", n, w, h, layout,
                  ", ".join(k for k in ("masks", "mono_depth", "mono_normal") if k in views) or "no masks or priors")
+    cams = np.unique(views["sizes"], axis=0)
+    if len(cams) > 1:  # each size its own camera (COLMAP's rule), on one canvas (manifoldneus.data.views)
+        ctx.log.info("photos of %d sizes, one camera each, on a %dx%d canvas: %s", len(cams), w, h,
+                     ", ".join(f"{int(c[1])}x{int(c[0])} ({int((views['sizes'] == c).all(1).sum())})" for c in cams))
     if turned:
         ctx.log.info("%d photo(s) stored %s turned by 90 deg to the others' %dx%d (the same camera held the other "
                      "way): %s", len(turned), "portrait" if w > h else "landscape", w, h, ", ".join(turned))
@@ -109,5 +113,5 @@ def run(ctx) -> None:
         "files": files, "turned_90": turned,
     })
     io.save_png(ctx.out / "contact_sheet.png", contact_sheet(views["images"], views.get("masks")))
-    ctx.metrics.update(n_views=n, width=w, height=h, layout=layout, intrinsics_source=intrinsics_source,
+    ctx.metrics.update(n_views=n, width=w, height=h, n_sizes=len(cams), layout=layout, intrinsics_source=intrinsics_source,
                        fx_mean=float(views["K"][:, 0, 0].mean()), fy_mean=float(views["K"][:, 1, 1].mean()))

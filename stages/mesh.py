@@ -38,7 +38,8 @@ def run(ctx) -> None:
         object_points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
     # meshed in the field's frame, saved in the rounds' (the poses' and every later stage's)
     mesh = evaluation.make_mesh(surface.trainer, ctx.params, views.K[ids], surface.trainer.views.w2c,
-                                masks, views.images.shape[1:3], region, cameras.transform_points(G, object_points))
+                                masks, views.images.shape[1:3], region, cameras.transform_points(G, object_points),
+                                sizes=views.view_sizes[ids])
     if ctx.params.vertex_colours and len(mesh.faces):
         import trimesh
 
@@ -48,8 +49,8 @@ def run(ctx) -> None:
     mesh.apply_transform(np.linalg.inv(G))
     evaluation.save_mesh_with_preview(mesh, ctx.out, ctx.params, w2c=w2c[ids])
     io.save_arrays(ctx.out / artifacts.POSES, {"w2c": w2c, "placed": placed}, chunk_first=False)
-    h, w = views.images.shape[1:3]
-    export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c, w, h, valid=placed)
+    export.write_colmap_text(ctx.out / "colmap", views.names, views.K, w2c, views.view_sizes[:, 1],
+                             views.view_sizes[:, 0], valid=placed)
     ctx.metrics.update(faces=int(len(mesh.faces)), vertices=int(len(mesh.vertices)), views_exported=int(placed.sum()))
 
 
@@ -59,5 +60,5 @@ def object_points_of(result: dict, views, ids: np.ndarray, min_seen: float) -> n
     points = result.get("track_points")
     if points is None:
         return None
-    sizes = np.tile(np.asarray(views.images.shape[1:3]), (len(ids), 1))  # [N,2] (H, W)
+    sizes = views.view_sizes[ids]  # [N,2] (H, W)
     return points[object_region.seen_fraction(points, views.K[ids], result["w2c"][ids], sizes) >= min_seen]

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus.data import artifacts
+from manifoldneus.data.views import own
 from manifoldneus.sfm import mapper as sfm
 from manifoldneus.config import ParamError, param
 from manifoldneus.data.io import native_output_to
@@ -94,12 +95,14 @@ def run_colmap(
     num_threads: int = 1,
     seed: int = 0,
     min_num_matches: int = 15,
+    one_size: bool = True,
     log=None,
 ) -> dict:
     """pycolmap extraction + exhaustive matching + incremental mapping.
 
     image_dir holds ``names`` (file names); K: [N,3,3] pixel intrinsics in COLMAP's convention
     (top-left pixel centre at (0.5, 0.5), the project's too), required when intrinsics="fixed".
+    ``one_size`` False: the images have several sizes, a camera each when they are calibrated here.
     Returns dict(w2c [N,4,4], registered [N], K [N,3,3], points3d, points3d_rgb,
     reconstruction (pycolmap.Reconstruction or None), extract_match_seconds, mapping_seconds,
     n_models).
@@ -127,8 +130,8 @@ def run_colmap(
         reader.camera_params = ",".join(f"{v:.10g}" for v in (k[0, 0], k[1, 1], k[0, 2], k[1, 2]))
     elif fixed:
         camera_mode = pycolmap.CameraMode.PER_IMAGE  # per-view K written into the database below
-    else:
-        camera_mode = pycolmap.CameraMode.SINGLE
+    else:  # AUTO: COLMAP's camera per image size (and EXIF)
+        camera_mode = pycolmap.CameraMode.SINGLE if one_size else pycolmap.CameraMode.AUTO
 
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = num_threads
@@ -208,7 +211,7 @@ def run(ctx) -> None:
     src = Path(ctx.input("ingest"))
     meta = artifacts.load_views_meta(src)
     names = list(meta["names"])
-    arrays = artifacts.load_views_arrays(src, ["images", "K"])
+    arrays = artifacts.load_views_arrays(src, ["images", "sizes", "K"])
     if p.when == "cameras" and not meta.get("has_cameras", True):
         skip(ctx, names, arrays["K"])
         return
@@ -221,14 +224,15 @@ def run(ctx) -> None:
     try:
         image_dir = tmp / "images"
         image_dir.mkdir()
-        for f, im in zip(files, arrays["images"]):
-            save_png(image_dir / f, im)
+        for f, im, hw in zip(files, arrays["images"], arrays["sizes"]):
+            save_png(image_dir / f, own(im, hw))
         with native_output_to(ctx.log_path):  # COLMAP's own log (hundreds of lines) goes to log.txt
             res = run_colmap(
                 image_dir, files, arrays["K"].astype(np.float64), tmp, intrinsics=intrinsics,
                 refine=tuple(p.refine_intrinsics), principal_point_p=p.principal_point_p,
                 max_features=p.max_features, num_threads=p.num_threads, seed=p.seed,
-                min_num_matches=p.min_num_matches, log=ctx.log,
+                min_num_matches=p.min_num_matches, one_size=len(np.unique(arrays["sizes"], axis=0)) == 1,
+                log=ctx.log,
             )
         sparse = Path(ctx.out) / "sparse"
         sparse.mkdir()

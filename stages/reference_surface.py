@@ -57,7 +57,7 @@ def run(ctx) -> None:
     w2c = gt["w2c"]
     pixels = artifacts.load_view_pixels(ctx.input("ingest"))
     views = Views(pixels["images"], gt["K"], w2c, gt.get("masks"), pixels.get("mono_depth"), pixels.get("mono_normal"),
-                  gt_meta["names"])
+                  gt_meta["names"], pixels["sizes"])
     held = holdout_mask(len(views.names), ctx.section("split"))
     run_p = ctx.section("run")
     tp = ctx.section("train")
@@ -78,7 +78,8 @@ def run(ctx) -> None:
     mp = ctx.section("meshing")
     train_ids = np.flatnonzero(~held)
     masks = None if views.masks is None else views.masks[train_ids]
-    mesh = evaluation.make_mesh(trainer, mp, views.K[train_ids], w2c[train_ids], masks, views.images.shape[1:3])
+    mesh = evaluation.make_mesh(trainer, mp, views.K[train_ids], w2c[train_ids], masks, views.images.shape[1:3],
+                                sizes=views.view_sizes[train_ids])
     evaluation.save_mesh_with_preview(mesh, ctx.out, mp, w2c=w2c[train_ids])
     nvs = evaluation.novel_views(trainer, views, np.flatnonzero(held), w2c, ctx.out / "novel_views", ctx.progress,
                                  align=ctx.section("novel_views"))

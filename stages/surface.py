@@ -75,7 +75,7 @@ def field_frame(result: dict, views, ids: np.ndarray, anchors_p, axes: str = "sf
         inside = views.masks[view, np.clip(uv[:, 1].astype(int), 0, H - 1), np.clip(uv[:, 0].astype(int), 0, W - 1)]
         obj = np.bincount(point, inside, len(points)) > 0.5 * np.maximum(np.bincount(point, minlength=len(points)), 1)
     else:
-        sizes = np.tile(np.asarray(views.images.shape[1:3]), (len(ids), 1))
+        sizes = views.view_sizes[ids]
         obj = object_region.seen_fraction(points, K, w2c, sizes) >= anchors_p.object_min_seen
     fitted = cameras.transform_points(to_axes, points[obj] if obj.sum() >= 20 else points)  # [P,3]
     s, c = cameras.gauge_from_points(fitted, anchors_p.gauge_radius, anchors_p.gauge_percentile, anchors_p.gauge_centre)

@@ -86,9 +86,9 @@ def test_colmap_images_of_one_file_name_in_two_subfolders_are_two_views(colmap_f
     assert len(set(v["names"])) == len(v["names"]) == 6 and {"camA_v", "camB_v"} <= set(v["names"])
 
 
-def test_a_colmap_image_of_another_size_is_named(colmap_folder, tiny_synthetic):
+def test_a_colmap_image_not_of_its_cameras_size_is_named(colmap_folder, tiny_synthetic):
     io.save_png(colmap_folder / "images" / "view03.png", tiny_synthetic.images[3][:-4])
-    with pytest.raises(SceneError, match=r"1 image\(s\) of the COLMAP model differ in size .*: view03\.png"):
+    with pytest.raises(SceneError, match=r"view03\.png is 64x60 but its camera 1 is 64x64"):
         views_of(colmap_folder)
 
 
@@ -310,10 +310,20 @@ def test_two_photos_with_one_name_are_refused_naming_both(plain_folder, tiny_syn
         views_of(plain_folder)
 
 
-def test_an_image_of_another_size_is_named(plain_folder, tiny_synthetic):
-    io.save_png(plain_folder / "IMG_0003.png", tiny_synthetic.images[3][:-4])
-    with pytest.raises(SceneError, match=r"1 image\(s\) differ in size .*: IMG_0003\.png \(\d+x\d+\)"):
-        views_of(plain_folder)
+def test_photos_of_several_sizes_are_several_cameras_on_one_canvas(plain_folder, tiny_synthetic):
+    """A photo of another size is a camera of its own (COLMAP's rule): its pixels at the top-left of the
+    common canvas, its size kept, its own first guess of K; given intrinsics (one camera) are refused."""
+    io.save_png(plain_folder / "IMG_0003.png", tiny_synthetic.images[3][:-16, :-8])  # 56x48
+    v = views_of(plain_folder)
+    assert v["images"].shape[1:3] == (64, 64) and v["sizes"].tolist() == [[64, 64]] * 3 + [[48, 56]] + [[64, 64]] * 2
+    assert np.array_equal(v["images"][3, :48, :56], tiny_synthetic.images[3][:-16, :-8])
+    assert not v["images"][3, 48:].any() and not v["images"][3, :, 56:].any()
+    np.testing.assert_allclose(v["K"][3], scenes.default_intrinsics(48, 56))
+    np.testing.assert_allclose(v["K"][0], scenes.default_intrinsics(64, 64))
+    half = views_of(plain_folder, downscale=2)  # each own size to its floor, as K
+    assert half["sizes"][3].tolist() == [24, 28] and half["images"].shape[1:3] == (32, 32)
+    with pytest.raises(SceneError, match="one camera, but the images have 2 sizes"):
+        views_of(plain_folder, intrinsics=[100.0, 100.0, 32.0, 32.0])
 
 
 def test_a_photo_stored_turned_joins_the_others_turned_back(tmp_path, tiny_synthetic):

@@ -12,7 +12,7 @@ import numpy as np
 from manifoldneus.data import io
 from manifoldneus.data.views import Views
 
-VIEWS = "views.zarr"  # ingest's arrays: images, K, masks, priors
+VIEWS = "views.zarr"  # ingest's arrays: images, sizes, K, masks, priors
 INPUT_CAMERAS = "input_cameras.zarr"  # ingest's poses a COLMAP model gave (w2c, its points): anchors.pose_init = input
 VIEWS_META = "views.json"  # ingest's names, layout, intrinsics_source, has_cameras, ...
 GT_META = "gt.json"  # ground_truth's has_poses, has_surface, units
@@ -54,16 +54,17 @@ def load_input_cameras(ingest_dir: Path) -> dict | None:
 
 
 def load_views_arrays(ingest_dir: Path, names: list[str] | None = None) -> dict:
-    """``ingest``'s ``views.zarr``: ``images``, ``K`` and, where the scene has them, ``masks``,
-    ``mono_depth``, ``mono_normal`` (all, or ``names``)."""
+    """``ingest``'s ``views.zarr``: ``images`` (on one canvas), ``sizes`` [N,2] (H, W) of each view's own pixels
+    in it (:mod:`manifoldneus.data.views`), ``K`` and, where the scene has them, ``masks``, ``mono_depth``,
+    ``mono_normal`` (all, or ``names``)."""
     return io.load_arrays(Path(ingest_dir) / VIEWS, names)
 
 
-VIEW_PIXELS = ("images", "mono_depth", "mono_normal")  # what views.zarr holds that is not a camera or a mask
+VIEW_PIXELS = ("images", "sizes", "mono_depth", "mono_normal")  # what views.zarr holds that is not a camera or a mask
 
 
 def load_view_pixels(ingest_dir: Path) -> dict:
-    """``ingest``'s ``images`` and, where the scene has them, ``mono_depth`` and ``mono_normal``: the
+    """``ingest``'s ``images``, ``sizes`` and, where the scene has them, ``mono_depth`` and ``mono_normal``: the
     arrays of ``views.zarr`` that :data:`VIEW_PIXELS` names."""
     path = Path(ingest_dir) / VIEWS
     return io.load_arrays(path, [a for a in VIEW_PIXELS if a in io.array_names(path)])
@@ -86,7 +87,7 @@ def load_views(ingest_dir: Path, w2c: np.ndarray | None = None, K: np.ndarray | 
     names = load_views_meta(ingest_dir)["names"]
     w2c = np.tile(np.eye(4), (len(names), 1, 1)) if w2c is None else w2c
     return Views(arrays["images"], arrays["K"] if K is None else K, w2c, arrays.get("masks"), arrays.get("mono_depth"),
-                 arrays.get("mono_normal"), names).undistorted(distortion)
+                 arrays.get("mono_normal"), names, arrays["sizes"]).undistorted(distortion)
 
 
 def load_features(features_dir: Path) -> tuple[list[dict], dict]:

@@ -27,6 +27,7 @@ import numpy as np
 
 from manifoldneus.geometry import cameras
 from manifoldneus.data import io
+from manifoldneus.data.views import canvas_sizes, on_canvas
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent.parent
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # compared lower-case: .JPG, .Jpeg too
@@ -190,7 +191,8 @@ def _load_npz(path: Path, keys: list[str]) -> dict:
 
 
 def _downscale(views: dict, factor: int) -> dict:
-    """Area-downscale images/masks/priors by an integer factor and scale K accordingly."""
+    """Area-downscale images/masks/priors by an integer factor and scale K accordingly; each view's own size
+    to its floor (the canvas' pixels below it mix none of the padding)."""
     if factor == 1:
         return views
     import cv2
@@ -202,6 +204,7 @@ def _downscale(views: dict, factor: int) -> dict:
     out = dict(views)
     out["images"] = np.stack([resize(im, cv2.INTER_AREA) for im in views["images"]])
     out["K"] = cameras.intrinsics_scaled(views["K"], 1.0 / factor)
+    out["sizes"] = np.asarray(views["sizes"]) // factor
     if "masks" in views:
         out["masks"] = np.stack([resize(m.astype(np.float32), cv2.INTER_AREA) > 0.5 for m in views["masks"]])
     if "mono_depth" in views:
@@ -268,7 +271,7 @@ def undistorted(views: dict, distortion: np.ndarray) -> dict:
 
 
 # Arrays and lists with one entry per view, in view order: what a view subset must slice.
-PER_VIEW_KEYS = ("images", "K", "masks", "mono_depth", "mono_normal", "names", "w2c", "files", "input_w2c")
+PER_VIEW_KEYS = ("images", "K", "masks", "mono_depth", "mono_normal", "names", "w2c", "files", "input_w2c", "sizes")
 
 
 def every_nth_view(data: dict, stride: int) -> dict:
@@ -301,7 +304,8 @@ def read_views(ref: SceneRef, p) -> dict:
         views = reader(ref.path, p)
         views["layout"] = layout
     source = views.pop("intrinsics_source", "calibrated")
-    views["K"], source = _intrinsics_in_use(views["K"], source, views["images"].shape[1:3], p)
+    views.setdefault("sizes", canvas_sizes(None, len(views["images"]), views["images"].shape[1:3]))
+    views["K"], source = _intrinsics_in_use(views["K"], source, views["sizes"], p)
     if p.distortion or p.downscale != 1:  # the files no longer hold the views' pixels
         views.pop("files", None)
     if p.distortion:
@@ -322,17 +326,21 @@ def default_intrinsics(height: int, width: int) -> np.ndarray:
     return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
 
 
-def _intrinsics_in_use(K: np.ndarray, source: str, size, p) -> tuple[np.ndarray, str]:
+def _intrinsics_in_use(K: np.ndarray, source: str, sizes: np.ndarray, p) -> tuple[np.ndarray, str]:
     """The K the method starts from and where it came from: ``ingest.intrinsics`` (given) over any
     layout's; with ``ingest.use_calibration`` false a layout's cameras are dropped for the
-    uncalibrated guess (default), as if the photos had come alone."""
+    uncalibrated guess (default) of each view's size [N,2] (H, W), as if the photos had come alone."""
     if p.intrinsics:
         if len(p.intrinsics) != 4:
             raise SceneError("ingest.intrinsics must be [fx, fy, cx, cy] in pixels of the input images")
+        if len(np.unique(sizes, axis=0)) > 1:
+            raise SceneError(f"ingest.intrinsics gives one camera, but the images have {len(np.unique(sizes, axis=0))} "
+                             f"sizes (one camera each): leave it empty to self-calibrate each, or give a COLMAP "
+                             f"model with a camera per size")
         fx, fy, cx, cy = p.intrinsics
         return np.repeat(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)[None], len(K), 0), "given"
     if not p.use_calibration and source == "calibrated":
-        return np.repeat(default_intrinsics(*size)[None], len(K), 0), "default"
+        return np.stack([default_intrinsics(int(h), int(w)) for h, w in sizes]), "default"
     return K, source
 
 
@@ -398,8 +406,10 @@ def _idr_views(path: Path, p) -> dict:
     if n == 0:
         raise SceneError(f"{_idr_image_dir(path)}: no images")
     cams = _load_npz(path / "cameras_sphere.npz", [f"world_mat_{i}" for i in range(n)])
+    images, sizes = on_canvas([io.read_image(f) for f in files])
     views = {
-        "images": np.stack([io.read_image(f) for f in files]),
+        "images": images,
+        "sizes": sizes,
         "K": np.stack([cameras.decompose_projection(cams[f"world_mat_{i}"])[0] for i in range(n)]),
         "names": [f.stem for f in files],
         "files": [str(f) for f in files],
@@ -407,7 +417,7 @@ def _idr_views(path: Path, p) -> dict:
     masks = _list_images(path / "mask")
     if masks:
         _check_count("masks in mask/", len(masks), n, path)
-        views["masks"] = np.stack([_read_mask(m) for m in masks])
+        views["masks"] = on_canvas([_read_mask(m) for m in masks])[0]
     return views
 
 
@@ -469,7 +479,6 @@ def _colmap_views(path: Path, p) -> dict:
         raise SceneError(f"{_colmap_model_dir(path)}: {len(clash)} view name(s) given by two images, e.g. "
                          f"{' and '.join(im.name for im, n in zip(images, names) if n == clash[0])}; rename one")
     pixels = [io.read_image(f) for f in files]
-    _refuse_mixed_sizes(pixels, [im.name for im in images], folder, "image(s) of the COLMAP model")
     model_dir = _colmap_model_dir(path)
     K = np.stack([_colmap_K(rec.cameras[im.camera_id]) for im in images])
     given = [str(f) for f in files]  # the files whose pixels are the views' (None: undistorted here)
@@ -479,7 +488,13 @@ def _colmap_views(path: Path, p) -> dict:
             pixels[i] = cameras.undistort_image(pixels[i], K[i], d)
             given[i] = None
     w2c, points = _colmap_poses(rec, images)  # an input a run may start from (anchors.pose_init = input)
-    return {"images": np.stack(pixels), "K": K, "names": names, "files": given, "input_w2c": w2c,
+    for i, im in enumerate(images):  # a camera's size is its images' (COLMAP's rule); else K is of other pixels
+        cam = rec.cameras[im.camera_id]
+        if pixels[i].shape[:2] != (cam.height, cam.width):
+            raise SceneError(f"{model_dir}: {im.name} is {pixels[i].shape[1]}x{pixels[i].shape[0]} but its camera "
+                             f"{im.camera_id} is {cam.width}x{cam.height}; give each size its own camera")
+    pixels, sizes = on_canvas(pixels)
+    return {"images": pixels, "sizes": sizes, "K": K, "names": names, "files": given, "input_w2c": w2c,
             "input_points": points}
 
 
@@ -489,42 +504,36 @@ def _colmap_poses(rec, images) -> tuple[np.ndarray, np.ndarray]:
     return w2c, np.array([pt.xyz for pt in rec.points3D.values()]).reshape(-1, 3)
 
 
-def _refuse_mixed_sizes(images: list, labels: list[str], folder: Path, what: str = "image(s)") -> None:
-    """A SceneError naming the images (``labels``) whose size is not the most common one."""
-    shapes = [im.shape[:2] for im in images]
-    if len(set(shapes)) != 1:
-        common = max(set(shapes), key=shapes.count)
-        odd = [f"{label} ({w}x{h})" for label, (h, w) in zip(labels, shapes) if (h, w) != common]
-        raise SceneError(f"{folder}: {len(odd)} {what} differ in size from the others' {common[1]}x{common[0]}: "
-                         f"{', '.join(odd[:5])}{' ...' if len(odd) > 5 else ''}; resize them to one size (a photo "
-                         f"stored turned by 90 deg is taken as it is) or remove them")
-
-
-def _one_orientation(images: list, labels: list[str], folder: Path) -> tuple[list, list[int]]:
+def _one_orientation(images: list) -> tuple[list, list[int]]:
     """Photos stored portrait among landscape ones (or the reverse) turned by 90 deg clockwise to the most
     common size: the same camera held the other way, so they share its intrinsics and their poses absorb the
-    turn. Returns the images and the indices of those turned; any other size is refused."""
+    turn. Returns the images and the indices of those turned; any other size stays (a camera of its own)."""
     shapes = [im.shape[:2] for im in images]
     common = max(set(shapes), key=shapes.count)
     turned = [i for i, s in enumerate(shapes) if s != common and s == common[::-1]]
     images = [np.ascontiguousarray(np.rot90(im, -1)) if i in turned else im for i, im in enumerate(images)]
-    _refuse_mixed_sizes(images, labels, folder)
     return images, turned
 
 
 def _plain_views(path: Path, p) -> dict:
+    """A photo folder; photos of several sizes are several cameras (as COLMAP's one camera per size), each
+    with its own first guess (the EXIF focal of its first upright photo, else COLMAP's default)."""
     folder = path / "images" if (path / "images").is_dir() else path
     files = _list_images(folder)
     if not files:
         raise SceneError(f"{folder}: no images ({', '.join(IMAGE_EXTENSIONS[:4])}, ...)")
-    images, turned = _one_orientation([io.read_image(f) for f in files], [f.name for f in files], folder)
-    h, w = images[0].shape[:2]
-    upright = min(set(range(len(files))) - set(turned))  # its EXIF focal is in pixels of the common size
-    fx, fy, cx, cy, source = _estimate_intrinsics(files[upright], w, h)  # ingest.intrinsics, when given, replaces it
-    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
-    return {"images": np.stack(images), "K": np.repeat(K[None], len(files), 0), "names": [f.stem for f in files],
-            "files": [None if i in turned else str(f) for i, f in enumerate(files)], "intrinsics_source": source,
-            "turned": [files[i].stem for i in turned]}
+    images, turned = _one_orientation([io.read_image(f) for f in files])
+    pixels, sizes = on_canvas(images)
+    K, sources = np.zeros((len(files), 3, 3)), []
+    for size in np.unique(sizes, axis=0):
+        of_size = np.flatnonzero((sizes == size).all(1))
+        upright = min(set(of_size) - set(turned), default=of_size[0])  # its EXIF focal is in pixels of this size
+        fx, fy, cx, cy, source = _estimate_intrinsics(files[upright], int(size[1]), int(size[0]))
+        K[of_size] = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]  # ingest.intrinsics, when given, replaces it
+        sources.append(source)
+    return {"images": pixels, "sizes": sizes, "K": K, "names": [f.stem for f in files],
+            "files": [None if i in turned else str(f) for i, f in enumerate(files)],
+            "intrinsics_source": "exif" if "exif" in sources else "default", "turned": [files[i].stem for i in turned]}
 
 
 def _estimate_intrinsics(image_path: Path, w: int, h: int) -> tuple[float, float, float, float, str]:

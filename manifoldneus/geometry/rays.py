@@ -18,6 +18,20 @@ def pixel_grid(height: int, width: int, device=None) -> tuple[torch.Tensor, torc
     return cols.reshape(-1), rows.reshape(-1)
 
 
+def draw_pixels(n: int, sizes: torch.Tensor, height: int, width: int, generator: torch.Generator) -> torch.Tensor:
+    """``n`` flat indices [n] (view * height * width + row * width + col, on the CPU) drawn uniformly over the
+    own pixels of views on one ``height`` x ``width`` canvas, each view's own part its top-left ``sizes``
+    [M,2] (H, W) (:mod:`manifoldneus.data.views`): the padding never becomes a ray."""
+    sizes = torch.as_tensor(sizes, dtype=torch.long)
+    area = sizes[:, 0] * sizes[:, 1]  # [M]
+    start = torch.cumsum(area, 0) - area
+    flat = torch.randint(0, int(area.sum()), (n,), generator=generator)
+    view = torch.searchsorted(start, flat, right=True) - 1
+    local = flat - start[view]
+    w = sizes[view, 1]
+    return view * (height * width) + (local // w) * width + local % w
+
+
 def camera_rays(
     cols: torch.Tensor, rows: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, jitter: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from manifoldneus.neural.pose_correction import PoseCorrections
-from manifoldneus.geometry.rays import camera_rays
+from manifoldneus.geometry.rays import camera_rays, draw_pixels
 from manifoldneus.neural.render import render_rays
 
 SILHOUETTE_WEIGHT = 0.1  # of the masks' BCE against the colour L1, as the trainer's default mask loss
@@ -38,13 +38,14 @@ def residuals(trainer, pose: torch.Tensor, view: torch.Tensor, pix: torch.Tensor
 
 def align_poses(trainer, start: torch.Tensor, images: torch.Tensor, masks: torch.Tensor | None, K: torch.Tensor, *,
                 steps: int, rays: int, lr: float, seed: int = 0, translation: bool = True,
-                progress=None) -> torch.Tensor:
+                progress=None, sizes: torch.Tensor | None = None) -> torch.Tensor:
     """Refine world-to-camera poses ``start`` [M,3,4] of M views with images [M,HW,3] at the trainer's
     resolution (masks [M,HW] or None, intrinsics K [M,3,3]) against ``trainer``'s frozen field:
     ``steps`` Adam steps of ``rays`` rays over all views, se(3) corrections with a peak lr ``lr``
     (cosine to a tenth). ``translation`` False learns rotations only: a correction on the left of a
     world-to-camera pose that is a pure rotation keeps the camera centre. Returns the poses [M,3,4] on
-    ``start``'s device."""
+    ``start``'s device. ``sizes`` [M,2] (H, W): views of several sizes, rays drawn in each one's own pixels
+    (:mod:`manifoldneus.data.views`); None: all the canvas'."""
     from manifoldneus.neural.train import lr_factor
 
     dev = trainer.device
@@ -59,7 +60,10 @@ def align_poses(trainer, start: torch.Tensor, images: torch.Tensor, masks: torch
     try:
         for step in range(steps):
             cams.set_lr(lr_factor(step, steps, 0, 0.1))
-            flat = torch.randint(0, M * HW, (rays,), generator=gen).to(dev)
+            if sizes is None:
+                flat = torch.randint(0, M * HW, (rays,), generator=gen).to(dev)
+            else:
+                flat = draw_pixels(rays, sizes, trainer.H, trainer.W, gen).to(dev)
             view, pix = flat // HW, flat % HW  # [R], [R]
             err, m, opacity = residuals(trainer, cams.poses(step)[view], view, pix, images, masks, K)  # [R] each
             if m is None:

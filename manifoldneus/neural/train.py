@@ -49,7 +49,7 @@ from manifoldneus.neural.field import FieldParams, make_field
 from manifoldneus.neural.gate import barf_weights
 from manifoldneus.neural.pose_correction import PoseCorrections
 from manifoldneus.neural.losses import LossParams, compute_losses
-from manifoldneus.geometry.rays import camera_rays, project
+from manifoldneus.geometry.rays import camera_rays, draw_pixels, project
 from manifoldneus.neural.render import Background, RenderParams, SDFCache, render_image, render_rays, resolve_background
 from manifoldneus.data.views import Views
 
@@ -155,10 +155,9 @@ def visual_hull_aabb(views: Views, res: int = 48, radius: float = 1.0, margin: f
     P = np.stack(np.meshgrid(lin, lin, lin, indexing="ij"), -1).reshape(-1, 3)
     P = P[np.linalg.norm(P, axis=1) <= radius]
     Pt = torch.as_tensor(P, dtype=torch.float64)
-    H, W = views.hw
     seen = np.zeros(len(P), int)
     in_mask = np.zeros(len(P), int)
-    for i in range(views.n):
+    for i, (H, W) in enumerate(views.view_sizes):  # each view's own frame
         uv, z = project(Pt, torch.as_tensor(views.K[i]), torch.as_tensor(views.w2c[i]))
         uv, z = uv.numpy(), z.numpy()
         inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
@@ -220,6 +219,8 @@ class Trainer:
         v = self.views
         H, W = v.hw
         self.H, self.W = H, W
+        # views of several sizes: each one's own part of the canvas [N,2] (rays are drawn there only); None: one size
+        self.sizes = None if v.one_size else torch.as_tensor(v.view_sizes, dtype=torch.long)
         self.images = torch.as_tensor(v.float_images().reshape(v.n, H * W, 3), device=dev)
         self.K = torch.as_tensor(v.K, dtype=torch.float32, device=dev)
         self.w2c_init = torch.as_tensor(np.asarray(v.w2c)[:, :3, :4], dtype=torch.float32, device=dev)
@@ -302,7 +303,10 @@ class Trainer:
         nv = len(self.train_views)
         tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
         n_fg = int(round(n * self.tp.fg_ray_fraction)) if self._fg_flat is not None else 0
-        flat = torch.randint(0, nv * HW, (n - n_fg,), generator=self.rng).to(dev)
+        if self.sizes is None:
+            flat = torch.randint(0, nv * HW, (n - n_fg,), generator=self.rng).to(dev)
+        else:
+            flat = draw_pixels(n - n_fg, self.sizes[self.train_views], self.H, self.W, self.rng).to(dev)
         if n_fg:
             pick = torch.randint(0, self._fg_flat.shape[0], (n_fg,), generator=self.rng).to(dev)
             flat = torch.cat([flat, self._fg_flat[pick]])

@@ -11,6 +11,7 @@ import torch
 
 from manifoldneus.geometry import cameras
 from manifoldneus.data import io
+from manifoldneus.data.views import own
 from manifoldneus.output import meshing, metrics
 from manifoldneus.config import param
 from manifoldneus.neural.field import FieldParams
@@ -129,11 +130,11 @@ def field_vertex_colours(trainer: Trainer, vertices: np.ndarray, normals: np.nda
 
 
 def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=None, region=None,
-              object_points=None):
+              object_points=None, sizes=None):
     """Mesh of the trainer's SDF; culled by the given views' dilated masks, to the surface they
     see and to the object's ``region`` (:class:`~manifoldneus.geometry.object_region.ObjectRegion`, the field's
     frame) and the silhouettes of its ``object_points`` [P,3], when asked (K [N,3,3] and w2c [N,4,4] at image size
-    hw = (H, W), the masks' size)."""
+    hw = (H, W), the masks' size; ``sizes`` [N,2] (H, W) each view's own part of it, None: all)."""
     mesh = meshing.extract_mesh(trainer.sdf_fn(), p.resolution, trainer.rp.radius, p.keep_components,
                                 coarse_step=p.coarse_step, band=p.band)
     trained = (trainer.H, trainer.W)  # the culls' tolerances are in its pixels
@@ -152,13 +153,13 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
             and len(mesh.faces)):
         silhouettes = meshing.point_silhouettes(object_points, K, w2c, hw)  # [N,H,W]
         mesh = meshing.cull_by_masks(mesh, K, w2c, silhouettes, image_px(p.silhouette_dilation, hw, trained),
-                                     min_fraction=p.silhouette_vote)
+                                     min_fraction=p.silhouette_vote, sizes=sizes)
         culled = True
     if p.cull_by_masks and masks is not None and len(mesh.faces):
         dilation = image_px(p.cull_dilation, masks.shape[1:], trained)
-        mesh, culled = meshing.cull_by_masks(mesh, K, w2c, masks, dilation=dilation), True
+        mesh, culled = meshing.cull_by_masks(mesh, K, w2c, masks, dilation=dilation, sizes=sizes), True
     if p.cull_unseen and K is not None and hw is not None and len(mesh.faces):
-        mesh, culled = meshing.cull_unseen(mesh, K, w2c, hw, p.visibility_size), True
+        mesh, culled = meshing.cull_unseen(mesh, K, w2c, hw, p.visibility_size, sizes=sizes), True
     if culled and p.keep_components > 0 and len(mesh.faces):
         mesh = meshing.largest_components(mesh, p.keep_components)
     return mesh
@@ -191,8 +192,9 @@ def align_test_poses(trainer: Trainer, small: Views, ids, w2c: np.ndarray, p: No
     masks = None if small.masks is None else torch.as_tensor(small.masks[ids].reshape(len(ids), HW), device=dev)
     K = torch.as_tensor(small.K[ids], dtype=torch.float32, device=dev)  # [M,3,3]
     start = torch.as_tensor(np.asarray(w2c)[ids, :3, :4], dtype=torch.float32, device=dev)  # [M,3,4]
+    sizes = None if small.one_size else torch.as_tensor(small.view_sizes[ids], dtype=torch.long)
     refined = align_poses(trainer, start, images, masks, K, steps=p.align_steps, rays=p.align_rays, lr=p.align_lr,
-                          seed=seed).double().cpu().numpy()  # [M,3,4]
+                          seed=seed, sizes=sizes).double().cpu().numpy()  # [M,3,4]
     out_w2c = np.array(w2c, dtype=np.float64)
     out_w2c[ids, :3, :4] = refined
     given = np.asarray(w2c, dtype=np.float64)
@@ -217,7 +219,8 @@ def novel_views(trainer: Trainer, views: Views, ids, w2c: np.ndarray, out_dir: P
     ``align`` (and ``align.align_steps`` > 0) each pose is also refined against the frozen field
     (:func:`align_test_poses`) and the view scored again: the ``aligned_*`` figures, with how far the
     alignment moved it (``align_rot_deg``, ``align_shift``). Writes ``<name>.png`` (rendered | real;
-    aligned rendering below when aligned) per view to ``out_dir``."""
+    aligned rendering below when aligned) per view to ``out_dir``. Each view is rendered and scored at its
+    own size (``size`` of its row: views of several sizes lie on one canvas, :mod:`manifoldneus.data.views`)."""
     small = views.resized(max(trainer.H, trainer.W))
     aligned_w2c, moved = None, {}
     if align is not None and align.align_steps > 0 and len(ids):
@@ -226,12 +229,13 @@ def novel_views(trainer: Trainer, views: Views, ids, w2c: np.ndarray, out_dir: P
     images = small.float_images()
     it = progress(ids, desc="novel views") if progress else ids
     for i in it:
-        real = images[i]
-        m = None if small.masks is None else small.masks[i]
+        h, w = (int(x) for x in small.view_sizes[i])
+        real = own(images[i], (h, w))
+        m = None if small.masks is None else own(small.masks[i], (h, w))
 
         def render(pose):
-            out = trainer.render_view(0, K=small.K[i], w2c=pose, size=(trainer.H, trainer.W), want_normals=False)
-            return np.clip(out["rgb"].reshape(trainer.H, trainer.W, 3), 0, 1)
+            out = trainer.render_view(0, K=small.K[i], w2c=pose, size=(h, w), want_normals=False)
+            return np.clip(out["rgb"].reshape(h, w, 3), 0, 1)
 
         pred = render(w2c[i])
         row = {"view": int(i), "name": views.names[i], **_score(pred, real, m)}
@@ -244,11 +248,11 @@ def novel_views(trainer: Trainer, views: Views, ids, w2c: np.ndarray, out_dir: P
             row.update(_score(pred_a, real, m, "aligned_"))
             row["align_rot_deg"], row["align_shift"] = moved[int(i)]
             panel = np.concatenate([panel, np.concatenate([pred_a, real], 1)], 0)
-        rows.append(row)
+        rows.append({**row, "size": [h, w]})
         if out_dir is not None:
             out_dir.mkdir(parents=True, exist_ok=True)
             io.save_png(out_dir / f"{views.names[i]}.png", panel)
-    summary = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k not in ("view", "name")} if rows else {}
+    summary = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k not in ("view", "name", "size")} if rows else {}
     ok, why = metrics.lpips_status()
     summary["lpips_status"] = "on" if ok else why
     summary["resolution"] = [trainer.H, trainer.W]

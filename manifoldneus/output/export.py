@@ -34,12 +34,22 @@ def image_filename(name: str, suffix: str = ".png") -> str:
     return re.sub(r"\s", "_", name) + suffix
 
 
-def shared_cameras(K: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Camera index [N] per view: views whose intrinsics agree (to 1e-9 relative) share one camera, as
-    the photos of one physical camera do; numbered in order of first use among the ``valid`` views."""
+def image_sizes(width, height, n: int) -> np.ndarray:
+    """[n,2] (width, height) of each view: ``width`` and ``height`` one for all, or one per view [n] each
+    (photos of several sizes)."""
+    return np.stack(np.broadcast_arrays(np.asarray(width), np.asarray(height)), -1).astype(np.int64) * np.ones(
+        (n, 1), np.int64)
+
+
+def shared_cameras(K: np.ndarray, valid: np.ndarray, sizes: np.ndarray | None = None) -> np.ndarray:
+    """Camera index [N] per view: views whose intrinsics agree (to 1e-9 relative) and, given ``sizes`` [N,2],
+    whose image sizes agree share one camera, as the photos of one physical camera do (COLMAP: a camera per
+    size); numbered in order of first use among the ``valid`` views."""
     index, reps = np.full(len(K), -1), []
+    same = (lambda i, r: True) if sizes is None else (lambda i, r: np.array_equal(sizes[i], sizes[r]))
     for i in np.flatnonzero(valid):
-        match = next((c for c, r in enumerate(reps) if np.allclose(K[i], K[r], rtol=1e-9, atol=0.0)), None)
+        match = next((c for c, r in enumerate(reps) if np.allclose(K[i], K[r], rtol=1e-9, atol=0.0) and same(i, r)),
+                     None)
         if match is None:
             reps.append(i)
             match = len(reps) - 1
@@ -47,10 +57,11 @@ def shared_cameras(K: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return index
 
 
-def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None,
+def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width, height, valid=None,
                       points: np.ndarray | None = None, colours: np.ndarray | None = None,
                       tracks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, suffixes=None) -> None:
-    """COLMAP text model: a PINHOLE camera per set of equal intrinsics (:func:`shared_cameras`), poses
+    """COLMAP text model: a PINHOLE camera per set of equal intrinsics and image size (:func:`shared_cameras`;
+    ``width``, ``height`` one for all or per view, :func:`image_sizes`), poses
     world-to-camera, and ``points`` [P,3] with ``colours`` [P,3] uint8 as 3D points; ``tracks`` = (view [O],
     point [O], uv [O,2] px) their observations (the images' POINTS2D and the points' TRACK[]: what COLMAP's
     image_undistorter and patch_match_stereo read); observations in views not ``valid`` are left out.
@@ -66,7 +77,8 @@ def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width
     order = np.argsort(view, kind="stable")  # each image's observations together, in their order
     view, point, uv = view[order], point[order], uv[order]
     index = np.arange(len(view)) - np.searchsorted(view, view)  # [O] the observation's POINT2D_IDX in its image
-    camera_of = shared_cameras(K, valid)
+    wh = image_sizes(width, height, len(names))
+    camera_of = shared_cameras(K, valid, wh)
     cams = ["# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
     imgs = ["# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "# POINTS2D[] as (X, Y, POINT3D_ID)"]
     for i, name in enumerate(names):
@@ -74,7 +86,7 @@ def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width
             continue
         if camera_of[i] == len(cams) - 1:  # a camera's first view
             k = K[i]
-            cams.append(f"{camera_of[i] + 1} PINHOLE {width} {height} {k[0, 0]:.17g} {k[1, 1]:.17g} {k[0, 2]:.17g} "
+            cams.append(f"{camera_of[i] + 1} PINHOLE {wh[i, 0]} {wh[i, 1]} {k[0, 0]:.17g} {k[1, 1]:.17g} {k[0, 2]:.17g} "
                         f"{k[1, 2]:.17g}")
         x, y, z, w = Rotation.from_matrix(w2c[i][:3, :3]).as_quat()
         t = w2c[i][:3, 3]
@@ -95,12 +107,13 @@ def write_colmap_text(folder: Path, names, K: np.ndarray, w2c: np.ndarray, width
     (folder / "points3D.txt").write_text("\n".join(pts) + "\n")
 
 
-def point_colours(points: np.ndarray, images: np.ndarray, K: np.ndarray, w2c: np.ndarray, views) -> np.ndarray:
+def point_colours(points: np.ndarray, images: np.ndarray, K: np.ndarray, w2c: np.ndarray, views,
+                  sizes: np.ndarray | None = None) -> np.ndarray:
     """Colour [P,3] uint8 of each point: the median over the ``views`` whose image it falls in (grey
-    where none)."""
+    where none); ``sizes`` [N,2] (H, W) each view's own part of the images' canvas (None: all of it)."""
     samples = np.full((len(views), len(points), 3), np.nan)
-    H, W = images.shape[1:3]
     for k, i in enumerate(views):
+        H, W = images.shape[1:3] if sizes is None else sizes[i]
         xc = points @ w2c[i][:3, :3].T + w2c[i][:3, 3]  # [P,3]
         uv = (xc @ K[i].T)[:, :2] / np.clip(xc[:, 2:], 1e-9, None)
         ok = (xc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
@@ -118,13 +131,14 @@ def write_points_ply(path: Path, points: np.ndarray, colours: np.ndarray) -> Non
     trimesh.PointCloud(points, colors=colours).export(path)
 
 
-def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, width: int, height: int, valid=None,
+def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, width, height, valid=None,
                           image_dir: str = "images", mask_dir: str | None = None,
                           ply_file_path: str | None = None, test=None, suffixes=None) -> dict:
     """nerfstudio's ``transforms.json`` (its ``nerfstudio-data`` layout) for the ``valid`` views:
     per frame ``file_path`` (relative to the file) and ``transform_matrix``, the camera-to-world pose
     with OpenGL camera axes; pinhole intrinsics ``fl_x fl_y cx cy w h`` in pixels (pixel centres at
-    +0.5, as COLMAP and nerfstudio) at the top level when every view shares them, else per frame;
+    +0.5, as COLMAP and nerfstudio; ``width``, ``height`` one for all or per view, :func:`image_sizes`) at the
+    top level when every view shares them, else per frame;
     ``ply_file_path`` (relative) names the initial point cloud. ``test`` (bool [N]): views of nerfstudio's
     test and validation split (``test_filenames``, ``val_filenames``; the other valid views are
     ``train_filenames``); None or none of them: no split is written. ``suffixes``: each view's image format
@@ -132,20 +146,23 @@ def write_transforms_json(path: Path, names, K: np.ndarray, w2c: np.ndarray, wid
     valid = np.ones(len(names), bool) if valid is None else np.asarray(valid, bool)
     c2w = cameras.opengl_c2w(w2c)  # [N,4,4]
 
-    def intrinsics(k) -> dict:
-        return {"fl_x": float(k[0, 0]), "fl_y": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
-                "w": int(width), "h": int(height)}
+    wh = image_sizes(width, height, len(names))
 
-    shared = valid.any() and shared_cameras(K, valid).max() == 0
+    def intrinsics(i) -> dict:
+        k = K[i]
+        return {"fl_x": float(k[0, 0]), "fl_y": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
+                "w": int(wh[i, 0]), "h": int(wh[i, 1])}
+
+    shared = valid.any() and shared_cameras(K, valid, wh).max() == 0
     frames = []
     for i in np.flatnonzero(valid):
         image = image_filename(names[i], *([] if suffixes is None else [suffixes[i]]))
-        frame = {"file_path": f"{image_dir}/{image}", **({} if shared else intrinsics(K[i])),
+        frame = {"file_path": f"{image_dir}/{image}", **({} if shared else intrinsics(i)),
                  "transform_matrix": c2w[i].tolist()}
         if mask_dir is not None:
             frame["mask_path"] = f"{mask_dir}/{image_filename(names[i])}"
         frames.append(frame)
-    out = {"camera_model": "OPENCV", **(intrinsics(K[np.flatnonzero(valid)[0]]) if shared else {})}
+    out = {"camera_model": "OPENCV", **(intrinsics(np.flatnonzero(valid)[0]) if shared else {})}
     if ply_file_path is not None:
         out["ply_file_path"] = ply_file_path
     out["frames"] = frames

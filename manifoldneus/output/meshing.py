@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from manifoldneus.geometry.cameras import project_points, transform_points
+from manifoldneus.data.views import canvas_sizes
 
 
 def sdf_grid(sdf_fn, resolution: int = 256, radius: float = 1.0, chunk: int = 262144,
@@ -163,22 +164,23 @@ def off_sphere_closure(vertices: np.ndarray, radius: float, resolution: int) -> 
     return np.linalg.norm(vertices, axis=1) < radius - 0.75 * cell
 
 
-def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all", min_fraction: float = 1.0):
+def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all", min_fraction: float = 1.0, sizes=None):
     """Remove vertices outside the training views' dilated masks.
 
     rule 'all' (DTU evaluation scripts of IDR / NeuS / MonoSDF at ``min_fraction`` 1): keep a vertex when
     it projects inside the dilated mask in at least ``min_fraction`` of the views whose image it falls in
     (a visual hull; below 1 it tolerates views whose mask misses a part).
     rule 'any': keep a vertex that projects inside the dilated mask of at least one view.
-    K [N,3,3], w2c [N,4,4], masks [N,H,W] bool. Faces keep only when all their vertices stay."""
+    K [N,3,3], w2c [N,4,4], masks [N,H,W] bool; ``sizes`` [N,2] (H, W) each view's own part of the masks'
+    canvas (:mod:`manifoldneus.data.views`; None: all of it). Faces keep only when all their vertices stay."""
     import cv2
 
     V = np.asarray(mesh.vertices, np.float64)
-    N, H, W = masks.shape
+    N = len(masks)
     ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilation + 1, 2 * dilation + 1)) if dilation > 0 else None
     n_inside = np.zeros(len(V))
     n_in_image = np.zeros(len(V))
-    for i in range(N):
+    for i, (H, W) in enumerate(canvas_sizes(sizes, N, masks.shape[1:3])):
         m = masks[i].astype(np.uint8)
         if ker is not None:
             m = cv2.dilate(m, ker)
@@ -196,7 +198,7 @@ def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all", mi
     return keep_vertices(mesh, keep)
 
 
-def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0):
+def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0, sizes=None):
     """Remove vertices that no view sees: surface the training never observed (e.g. the underside,
     where a grid SDF keeps its initial sphere) has no image evidence, and DTU's evaluation crops it too.
 
@@ -204,15 +206,15 @@ def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0):
     close gaps between splatted vertices); a vertex is seen when it lies in the image, in front of the
     camera, and no deeper than the z-buffer by ``depth_tol_px`` pixel footprints (a slanted surface
     changes depth across the 3x3 filter by about its slope times a footprint).
-    K [N,3,3] and w2c [N,4,4] at image size ``hw`` = (H, W). Faces keep only when all their vertices stay."""
+    K [N,3,3] and w2c [N,4,4] at image size ``hw`` = (H, W), or each view's own ``sizes`` [N,2] (H, W).
+    Faces keep only when all their vertices stay."""
     from scipy.ndimage import minimum_filter
 
     V = np.asarray(mesh.vertices, np.float64)  # [P,3]
-    H, W = hw
-    scale = size / max(H, W)
-    h, w = max(int(round(H * scale)), 1), max(int(round(W * scale)), 1)
     seen = np.zeros(len(V), bool)
-    for Ki, T in zip(K, w2c):
+    for Ki, T, (H, W) in zip(K, w2c, canvas_sizes(sizes, len(K), hw)):
+        scale = size / max(H, W)
+        h, w = max(int(round(H * scale)), 1), max(int(round(W * scale)), 1)
         xc = V @ T[:3, :3].T + T[:3, 3]  # [P,3] camera frame
         z = xc[:, 2]
         uv = (xc @ Ki.T)[:, :2] / np.clip(z, 1e-9, None)[:, None] * scale

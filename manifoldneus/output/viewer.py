@@ -63,13 +63,13 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None
     return mean(vertices), f, new_colours
 
 
-def frustum_points(K: np.ndarray, w2c: np.ndarray, width: int, height: int, depth: float) -> np.ndarray:
+def frustum_points(K: np.ndarray, w2c: np.ndarray, width, height, depth: float) -> np.ndarray:
     """Camera centre and the four image corners at z-depth ``depth``, in the world: [N,5,3] for
-    K [N,3,3] and w2c [N,4,4] (OpenCV cameras)."""
-    corners = np.array([[0, 0], [width, 0], [width, height], [0, height]], np.float64)  # [4,2] px
+    K [N,3,3] and w2c [N,4,4] (OpenCV cameras), ``width`` and ``height`` one for all or per view."""
     c2w = cameras.invert_pose(w2c)  # [N,4,4]
     out = np.zeros((len(w2c), 5, 3))
-    for i in range(len(w2c)):
+    for i, (width, height) in enumerate(export.image_sizes(width, height, len(w2c))):
+        corners = np.array([[0, 0], [width, 0], [width, height], [0, height]], np.float64)  # [4,2] px
         xc = np.c_[cameras.pixels_to_normalised(K[i], corners), np.ones(4)] * depth  # [4,3] camera frame
         out[i, 0] = c2w[i, :3, 3]
         out[i, 1:] = xc @ c2w[i, :3, :3].T + c2w[i, :3, 3]
@@ -113,7 +113,8 @@ def scene_data(versions: dict[str, Path], max_faces: int = MAX_FACES) -> dict:
     ``ground_truth``, ``schedule``, ``anchors``, ``successors``, ``export`` and, when it was run, ``reference``)."""
 
     views_meta = artifacts.load_views_meta(versions["ingest"])
-    names, width, height = views_meta["names"], views_meta["width"], views_meta["height"]
+    sizes = artifacts.load_views_arrays(versions["ingest"], ["sizes"])["sizes"]  # each view's own (H, W)
+    names, width, height = views_meta["names"], sizes[:, 1], sizes[:, 0]
     K = artifacts.load_round_arrays(versions["successors"] / artifacts.FINAL_ROUND, ["K"])["K"]  # the intrinsics the poses belong to
     n = len(names)
     schedule = artifacts.load_schedule_meta(versions["schedule"])
