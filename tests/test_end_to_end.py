@@ -445,8 +445,9 @@ def test_a_colmap_models_poses_seed_the_anchors(tmp_path):
 
 def test_photos_of_two_sizes_are_two_cameras_end_to_end(tmp_path):
     """The synthetic scene as a COLMAP model whose every fourth photo is cropped to 128x96 (a second camera,
-    its principal point moved; among them the held-out views): every stage runs, each size keeps its own
-    camera through the SfM to the exports (images at their own size), the poses are the truth's, and the
+    its principal point moved; among them the held-out views), its calibration left unused (as photos alone:
+    each size starts from its own guess and is self-calibrated apart): every stage runs, each size keeps its
+    own camera through the SfM to the exports (images at their own size), the poses are the truth's, and the
     held-out views are rendered and scored on their own pixels only."""
     import pycolmap
     from PIL import Image
@@ -467,16 +468,20 @@ def test_photos_of_two_sizes_are_two_cameras_end_to_end(tmp_path):
     assert len(pycolmap.Reconstruction(str(folder / "sparse" / "0")).cameras) == 2
     artifacts = tmp_path / "artifacts"
     # export and evaluate, not pycolmap's reference: its scores are not this test's
-    report = {until: runner.run(str(folder), until=until, artifacts=artifacts, overrides=TINY).fingerprints[until]
+    overrides = TINY + ["ingest.use_calibration=false"]
+    report = {until: runner.run(str(folder), until=until, artifacts=artifacts, overrides=overrides).fingerprints[until]
               for until in ("export", "evaluate")}
     store = runner.Store(artifacts, runner.resolve_scene(str(folder)).name)
     out = store.version_dir("export", report["export"])
     rec = pycolmap.Reconstruction(str(out / "colmap"))
     assert len(rec.cameras) == 2 and len(rec.images) >= 14
+    assert len({tuple(c.params) for c in rec.cameras.values()}) == 2  # each size calibrated apart
     for image in rec.images.values():
         i = scene.names.index(Path(image.name).stem)
         camera = rec.cameras[image.camera_id]
         assert (camera.width, camera.height) == (128, heights[i])
+        assert camera.params[2:] == pytest.approx([64, K[i, 1, 2]])  # its own principal point
+        assert camera.params[0] == pytest.approx(K[i, 0, 0], rel=0.1)  # self-calibrated from 1.2 x 128 = 154 px
         assert Image.open(out / "images" / image.name).size == (128, heights[i])
     frames = io.load_json(out / "transforms.json")["frames"]
     assert {(f["w"], f["h"]) for f in frames} == {(128, 96), (128, 128)}

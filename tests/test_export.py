@@ -98,6 +98,22 @@ def test_colmap_model_has_one_camera_per_set_of_intrinsics_and_the_points(tmp_pa
     assert sorted(b[1] for b in back) == sorted(map(tuple, colours.tolist()))
 
 
+def test_photos_of_two_sizes_are_two_cameras_in_both_exports(tmp_path):
+    """Equal intrinsics but two image sizes: two COLMAP cameras (each its size), transforms.json per frame."""
+    import pycolmap
+
+    K = np.tile(np.array([[100.0, 0, 64], [0, 100, 48], [0, 0, 1]]), (3, 1, 1))
+    w2c = np.tile(np.eye(4), (3, 1, 1))
+    w2c[:, 2, 3] = 3.0
+    export.write_colmap_text(tmp_path, ["a", "b", "c"], K, w2c, 128, np.array([96, 128, 96]))
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    assert sorted((c.width, c.height) for c in rec.cameras.values()) == [(128, 96), (128, 128)]
+    assert rec.images[1].camera_id == rec.images[3].camera_id != rec.images[2].camera_id
+    out = export.write_transforms_json(tmp_path / "t.json", ["a", "b", "c"], K, w2c, 128, np.array([96, 128, 96]))
+    assert "w" not in out and [(f["w"], f["h"]) for f in out["frames"]] == [(128, 96), (128, 128), (128, 96)]
+    assert export.read_transforms_json(tmp_path / "t.json")["size"].tolist() == [[128, 96], [128, 128], [128, 96]]
+
+
 def test_colmap_model_carries_the_tracks_of_its_points(tmp_path):
     """Each point's observations become the images' POINTS2D and the point's TRACK[]: pycolmap finds every
     observation back, and projecting a point reproduces its observed pixels."""

@@ -16,7 +16,7 @@ from manifoldneus.neural.field import FieldBase, FieldParams, make_field
 from manifoldneus.neural.losses import LossParams, compute_losses
 from manifoldneus.output.meshing import cull_by_masks, cull_unseen, extract_mesh, preview_directions, render_preview
 from manifoldneus.output.metrics import chamfer, psnr, ssim
-from manifoldneus.geometry.rays import camera_rays, pixel_grid, sphere_bounds
+from manifoldneus.geometry.rays import camera_rays, draw_pixels, pixel_grid, sphere_bounds
 from manifoldneus.neural.render import Background, RenderParams, SDFCache, render_image, render_rays
 from manifoldneus.neural.train import TrainParams, Trainer, TrainRun, Views
 
@@ -821,3 +821,30 @@ def test_hashed_levels_read_the_rows_instant_ngp_s_hash_names():
     x = torch.rand(500, 3) * 2 - 1
     want = grid_encoding.encode(x, list(field.grids), "torch", resolutions=(8, 16, 32, 64))  # aabb is [-1, 1]^3
     assert torch.allclose(field.grid_features(x), want, atol=1e-6) and field.sdf(x).shape == (500,)
+
+
+def test_rays_of_views_of_several_sizes_come_from_their_own_pixels():
+    """On a canvas holding views of several sizes (top-left, zero beyond), rays are drawn from each view's
+    own pixels only, as many per view as it has pixels (uniform over all real pixels)."""
+    sizes = torch.tensor([[8, 12], [4, 6], [8, 3]])
+    flat = draw_pixels(40000, sizes, 8, 12, torch.Generator().manual_seed(0))
+    view, pix = flat // 96, flat % 96
+    rows, cols = pix // 12, pix % 12
+    assert (rows < sizes[view, 0]).all() and (cols < sizes[view, 1]).all()
+    share = torch.bincount(view, minlength=3).double() / len(flat)
+    np.testing.assert_allclose(share.numpy(), [96 / 144, 24 / 144, 24 / 144], atol=0.01)
+
+
+def test_views_of_several_sizes_resize_each_to_its_own_size():
+    """Views.resized keeps each view's own pixels (no padding blended in) and scales each K by its own
+    factors."""
+    from manifoldneus.data.views import on_canvas
+
+    images, sizes = on_canvas([np.full((40, 60, 3), 200, np.uint8), np.full((30, 60, 3), 100, np.uint8)])
+    K = np.tile(np.array([[50.0, 0, 30], [0, 50, 20], [0, 0, 1]]), (2, 1, 1))
+    K[1, 1, 2] = 15
+    v = Views(images, K, np.tile(np.eye(4), (2, 1, 1)), sizes=sizes).resized(30)
+    assert v.images.shape[1:3] == (20, 30) and v.view_sizes.tolist() == [[20, 30], [15, 30]]
+    assert np.allclose(v.images[1, :15], 100 / 255) and not v.images[1, 15:].any()
+    np.testing.assert_allclose(v.K[1], [[25, 0, 15], [0, 25, 7.5], [0, 0, 1]])
+    assert not v.one_size and Views(images[:1], K[:1], np.eye(4)[None], sizes=sizes[:1]).one_size
