@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from manifoldneus.data import artifacts, io, scenes
+from manifoldneus.data.views import own
 from manifoldneus.config import param
 
 
@@ -61,8 +62,9 @@ def input_signature(scene, p: Params) -> str:
     return scenes.input_signature(scene)
 
 
-def contact_sheet(images: np.ndarray, masks: np.ndarray | None, columns: int = 10, side: int = 96) -> np.ndarray:
-    """Thumbnails of every view (masked-out background dimmed), for a quick look."""
+def contact_sheet(images, masks, columns: int = 10, side: int = 96) -> np.ndarray:
+    """Thumbnails of every view (``images``: [H,W,3] each, of any size; ``masks`` likewise or None; masked-out
+    background dimmed), for a quick look."""
     import cv2
 
     n = len(images)
@@ -112,6 +114,8 @@ def run(ctx) -> None:
         "source": str(ctx.scene_ref.path) if ctx.scene_ref.path else ctx.scene_ref.name,
         "files": files, "turned_90": turned,
     })
-    io.save_png(ctx.out / "contact_sheet.png", contact_sheet(views["images"], views.get("masks")))
+    mine = [own(im, hw) for im, hw in zip(views["images"], views["sizes"])]  # each photo at its own size
+    masks = None if views.get("masks") is None else [own(m, hw) for m, hw in zip(views["masks"], views["sizes"])]
+    io.save_png(ctx.out / "contact_sheet.png", contact_sheet(mine, masks))
     ctx.metrics.update(n_views=n, width=w, height=h, n_sizes=len(cams), layout=layout, intrinsics_source=intrinsics_source,
                        fx_mean=float(views["K"][:, 0, 0].mean()), fy_mean=float(views["K"][:, 1, 1].mean()))
