@@ -306,7 +306,7 @@ class Round:
         after = before.clone()
         after[v] = align_poses(t, before[v], t.images[v], None if t.masks is None else t.masks[v], t.K[v],
                                steps=pp.steps, rays=pp.rays, lr=pp.lr, seed=t.run.seed, translation=pp.translation,
-                               progress=progress, sizes=None if t.sizes is None else t.sizes[v])
+                               progress=progress, sizes=None if t.sizes is None else t.sizes[v.cpu()])
         t.set_poses(after)
         b, a = before[v].double().cpu().numpy(), after[v].double().cpu().numpy()  # [m,3,4]
         turn = rotation_angle_deg(a[:, :, :3] @ b[:, :, :3].transpose(0, 2, 1))  # [m]

@@ -219,7 +219,7 @@ class Trainer:
         v = self.views
         H, W = v.hw
         self.H, self.W = H, W
-        # views of several sizes: each one's own part of the canvas [N,2] (rays are drawn there only); None: one size
+        # views of several sizes: each one's own part of the canvas [N,2] on the CPU, as the ray draw; None: one size
         self.sizes = None if v.one_size else torch.as_tensor(v.view_sizes, dtype=torch.long)
         self.images = torch.as_tensor(v.float_images().reshape(v.n, H * W, 3), device=dev)
         self.K = torch.as_tensor(v.K, dtype=torch.float32, device=dev)
