@@ -259,3 +259,40 @@ def test_the_free_space_term_is_on_without_masks_only(on_a_floor, tmp_path):
     assert len(lines) > len(poses["object_points"]) >= 20
     gap = np.linalg.norm(lines[:, None, 0] - cameras.camera_centers(poses["w2c"][anchors])[None], axis=2).min(1)
     assert np.median(gap) < 1e-4  # most from the anchors themselves (a bridge view's are not anchors)
+
+
+def _ball_on_a_table(support: str):
+    """Mesh of a ball (radius 0.4) standing in a table (top at z = -0.3), cropped to a region whose plane is the
+    table's top: ``meshing.support`` cut or keep."""
+    from types import SimpleNamespace
+
+    from manifoldneus.output import evaluation
+
+    def sdf(p):
+        return np.minimum(np.linalg.norm(p, axis=1) - 0.4, np.abs(p[:, 2] + 0.32) - 0.02)
+
+    trainer = SimpleNamespace(sdf_fn=lambda: sdf, rp=SimpleNamespace(radius=1.0), H=64, W=64)
+    region = object_region.ObjectRegion([0.0, 0.0, 0.0], 0.8, [0.0, 0.0, 1.0, 0.3])
+    p = evaluation.MeshParams(resolution=64, crop_to_object="on", silhouette_vote=0.0, cull_unseen=False,
+                              keep_components=0, support=support)
+    return evaluation.make_mesh(trainer, p, region=region), region, p
+
+
+def test_the_support_is_cut_along_its_plane_or_kept_whole():
+    cut, region, p = _ball_on_a_table("cut")
+    level = -0.3 + p.support_margin * region.radius  # the cut's height
+    V = np.asarray(cut.vertices)
+    assert V[:, 2].min() > level - 1e-6  # nothing of the table
+    assert (np.abs(np.linalg.norm(V, axis=1) - 0.4) < 0.03).mean() > 0.99  # the ball, all of it above the cut
+    assert V[:, 2].max() > 0.39
+    # a straight edge: every boundary vertex lies on the cut plane, none a cell off it (vertices culled would be)
+    edges = trimesh.grouping.group_rows(cut.edges_sorted, require_count=1)
+    rim = np.unique(cut.edges_sorted[edges])
+    assert len(rim) > 20 and np.abs(V[rim, 2] - level).max() < 1e-6
+    kept, _, _ = _ball_on_a_table("keep")
+    W = np.asarray(kept.vertices)
+    top = np.abs(kept.triangles_center[:, 2] + 0.3) < 0.005  # the table's top face
+    ring = np.pi * (0.8**2 - 0.3**2 - (0.4**2 - 0.3**2))  # inside the region's ball, outside the ball standing on it
+    # the table's top whole, no holes (the ball's crop drops the cells its sphere crosses: about 0.14)
+    assert 0.8 * ring < kept.area_faces[top].sum() < 1.05 * ring
+    assert np.linalg.norm(W - region.centre, axis=1).max() <= region.radius + 1e-9

@@ -108,10 +108,11 @@ class ObjectRegion:
         centre = transform_points(M, np.asarray(self.centre, np.float64)[None])[0]
         return ObjectRegion(centre.tolist(), s * self.radius, plane, self.n_points, self.source)
 
-    def contains(self, x: np.ndarray, plane_margin: float = 0.0) -> np.ndarray:
-        """bool [P]: points x [P,3] inside the ball and above the support plane by ``plane_margin``."""
+    def contains(self, x: np.ndarray, plane_margin: float | None = 0.0) -> np.ndarray:
+        """bool [P]: points x [P,3] inside the ball and above the support plane by ``plane_margin`` (None: the
+        ball alone, the support kept)."""
         inside = np.linalg.norm(np.asarray(x) - np.asarray(self.centre), axis=1) <= self.radius
-        if self.plane is not None:
+        if self.plane is not None and plane_margin is not None:
             inside &= np.asarray(x) @ np.asarray(self.plane[:3]) + self.plane[3] > plane_margin
         return inside
 

@@ -48,7 +48,12 @@ class MeshParams:
     crop_to_object: str = param("auto", "Crop the surface to the object's region the anchors found from the SfM "
                                 "points (ball and support plane; manifoldneus/geometry/object_region.py): auto = when the "
                                 "run has no masks | on | off", choices=("auto", "on", "off"))
-    support_margin: float = param(0.02, "The crop keeps surface this far above the support plane (in units of the "
+    support: str = param("cut", "What the crop to the object does with the support it stands on (the plane the "
+                         "anchors found under it): cut = the surface sliced along the plane (support_margin above "
+                         "it), a straight edge where the object meets it; keep = the support kept, as far as the "
+                         "object's region (ball) and the silhouettes of the SfM points on it reach",
+                         choices=("cut", "keep"))
+    support_margin: float = param(0.02, "support=cut: the cut lies this far above the support plane (in units of the "
                                   "object region's radius), so the support itself goes", lo=0.0, hi=0.5)
     silhouette_vote: float = param(0.9, "The crop to the object also keeps only surface inside the silhouettes of "
                                    "the object's SfM points (per view the convex hull of their projections, dilated "
@@ -147,8 +152,10 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
     crop = (region is not None or object_points is not None) and (
         p.crop_to_object == "on" or (p.crop_to_object == "auto" and masks is None))
     if crop and region is not None and len(mesh.faces):
-        mesh, culled = meshing.keep_vertices(mesh, region.contains(np.asarray(mesh.vertices),
-                                                                   p.support_margin * region.radius)), True
+        mesh, culled = meshing.keep_vertices(mesh, region.contains(np.asarray(mesh.vertices), None)), True
+        if region.plane is not None and p.support == "cut" and len(mesh.faces):
+            # sliced, not vertex-culled: removing the faces that touch the plane would leave a ragged edge
+            mesh = meshing.cut_by_plane(mesh, region.plane, p.support_margin * region.radius)
     if (crop and object_points is not None and len(object_points) and K is not None and p.silhouette_vote > 0
             and len(mesh.faces)):
         silhouettes = meshing.point_silhouettes(object_points, K, w2c, hw)  # [N,H,W]

@@ -135,6 +135,21 @@ def keep_vertices(mesh, keep):
     return out
 
 
+def cut_by_plane(mesh, plane, offset: float = 0.0):
+    """The part of the mesh where n.x + d >= ``offset`` (``plane`` = n [3] unit + [d]), its triangles split
+    along the plane, so the cut is a straight edge on it."""
+    import trimesh
+
+    n = np.asarray(plane[:3], np.float64)
+    # the faces' slicer, not Trimesh.slice_plane: that one imports shapely (for caps) even when not capping
+    vertices, faces = trimesh.intersections.slice_faces_plane(np.asarray(mesh.vertices), np.asarray(mesh.faces), n,
+                                                              (offset - float(plane[3])) * n)[:2]
+    out = trimesh.Trimesh(vertices, faces, process=False)
+    out.merge_vertices()  # the split faces' new vertices, shared between neighbours
+    out.remove_unreferenced_vertices()
+    return out
+
+
 def point_silhouettes(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) -> np.ndarray:
     """bool [N,H,W]: in each view (K [N,3,3], w2c [N,4,4], image size hw = (H, W)) the convex hull of the
     points [P,3] in front of it, projected: the silhouette a mask would give, from SfM points alone. Convex, so
