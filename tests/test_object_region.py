@@ -296,3 +296,24 @@ def test_the_support_is_cut_along_its_plane_or_kept_whole():
     # the table's top whole, no holes (the ball's crop drops the cells its sphere crosses: about 0.14)
     assert 0.8 * ring < kept.area_faces[top].sum() < 1.05 * ring
     assert np.linalg.norm(W - region.centre, axis=1).max() <= region.radius + 1e-9
+
+
+def test_surface_hidden_in_every_view_goes_even_when_the_crop_removes_what_hid_it():
+    """Visibility is decided on the field's whole surface, before the crop: a shell inside background surface
+    (what the rounds' field leaves behind a support) stays hidden although the crop then drops the background."""
+    from types import SimpleNamespace
+
+    from manifoldneus.output import evaluation
+
+    def sdf(p):  # a small ball (hidden) inside a closed shell of radius 0.5 (outside the object's region)
+        r = np.linalg.norm(p, axis=1)
+        return np.minimum(r - 0.1, np.abs(r - 0.5) - 0.02)
+
+    K, w2c, sizes = _views()
+    trainer = SimpleNamespace(sdf_fn=lambda: sdf, rp=SimpleNamespace(radius=1.0), H=128, W=128)
+    p = evaluation.MeshParams(resolution=96, crop_to_object="on", silhouette_vote=0.0, keep_components=0,
+                              visibility_size=64)  # the shell's vertices close its z-buffer
+    mesh = evaluation.make_mesh(trainer, p, K, w2c, hw=tuple(sizes[0]), region=object_region.ObjectRegion([0.0] * 3, 0.3))
+    assert len(mesh.vertices) == 0
+    whole = evaluation.make_mesh(trainer, p, K, w2c, hw=tuple(sizes[0]), region=object_region.ObjectRegion([0.0] * 3, 0.9))
+    assert (np.linalg.norm(whole.vertices, axis=1) > 0.45).all() and len(whole.vertices)  # the shell, seen

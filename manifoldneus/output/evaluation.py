@@ -151,6 +151,11 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
     # (the GT-pose reference) need not declare them, so they do not enter its fingerprint
     crop = (region is not None or object_points is not None) and (
         p.crop_to_object == "on" or (p.crop_to_object == "auto" and masks is None))
+    unseen = p.cull_unseen and K is not None and hw is not None
+    if unseen and crop and len(mesh.faces):
+        # what the views see is decided on the whole surface the field has: cropped first, the background and
+        # support it drops would no longer hide the surface behind them (scan65's photos alone: inner shells)
+        mesh, culled = meshing.cull_unseen(mesh, K, w2c, hw, p.visibility_size, sizes=sizes), True
     if crop and region is not None and len(mesh.faces):
         mesh, culled = meshing.keep_vertices(mesh, region.contains(np.asarray(mesh.vertices), None)), True
         if region.plane is not None and p.support == "cut" and len(mesh.faces):
@@ -165,7 +170,7 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
     if p.cull_by_masks and masks is not None and len(mesh.faces):
         dilation = image_px(p.cull_dilation, masks.shape[1:], trained)
         mesh, culled = meshing.cull_by_masks(mesh, K, w2c, masks, dilation=dilation, sizes=sizes), True
-    if p.cull_unseen and K is not None and hw is not None and len(mesh.faces):
+    if unseen and not crop and len(mesh.faces):
         mesh, culled = meshing.cull_unseen(mesh, K, w2c, hw, p.visibility_size, sizes=sizes), True
     if culled and p.keep_components > 0 and len(mesh.faces):
         mesh = meshing.largest_components(mesh, p.keep_components)
