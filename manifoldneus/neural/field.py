@@ -19,6 +19,7 @@ regulariser for grids); ``gradient_mode = "auto"`` picks analytic for ``mlp``, f
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -90,6 +91,18 @@ def fourier_encode(x: torch.Tensor, n_bands: int, band_weights: torch.Tensor | N
 TETRA = torch.tensor([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]])
 
 
+@functools.lru_cache(maxsize=None)
+def _tetra_on(device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    return TETRA.to(device, dtype)
+
+
+def _tetra(x: torch.Tensor) -> torch.Tensor:
+    """TETRA on x's device and dtype, copied there once: a copy per call is a synchronisation on a GPU."""
+    if torch.compiler.is_compiling():  # a compiled graph holds it as a constant
+        return TETRA.to(x)
+    return _tetra_on(x.device, x.dtype)
+
+
 class FieldBase(nn.Module):
     """Common interface. Subclasses implement ``_sdf_feat`` and ``_color``."""
 
@@ -134,7 +147,7 @@ class FieldBase(nn.Module):
         n = x.shape[0]
         if mode == "fd":
             eps = self.fd_eps if self.fd_eps > 0 else self.default_fd_eps()
-            T = TETRA.to(x)
+            T = _tetra(x)
             pts = (x.detach()[None, :, :] + eps * T[:, None, :]).reshape(-1, 3)
 
             def finish(f):
@@ -156,7 +169,7 @@ class FieldBase(nn.Module):
         mode = mode or self.resolved_gradient_mode()
         if mode == "fd":
             eps = self.fd_eps if self.fd_eps > 0 else self.default_fd_eps()
-            T = TETRA.to(x)
+            T = _tetra(x)
             n = x.shape[0]
             xs = (x[None, :, :] + eps * T[:, None, :]).reshape(-1, 3)
             bw = None
@@ -273,6 +286,10 @@ class GridField(FieldBase):
         # autograd gradients are differentiated again (Eikonal): only grid_sample's kernel allows it
         self.grid_kernel = "torch" if self.resolved_gradient_mode() == "analytic" else p.grid_kernel
         self.register_buffer("aabb", torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]))
+        # the box's largest extent as a host float (the finite-difference step reads it every step: read
+        # from the buffer, a synchronisation on a GPU); kept with the buffer by set_aabb and loading
+        self._extent = 2.0
+        self.register_load_state_dict_post_hook(_read_extent_after_load)
         d_feat = C * p.grid_levels + 3
         layers = []
         d = d_feat
@@ -297,10 +314,13 @@ class GridField(FieldBase):
     def set_aabb(self, lo, hi) -> None:
         """Box covered by the grids (points outside read zero features)."""
         self.aabb.copy_(torch.tensor(list(lo) + list(hi), dtype=self.aabb.dtype))
+        self._read_extent()
+
+    def _read_extent(self) -> None:
+        self._extent = float((self.aabb[3:] - self.aabb[:3]).max())
 
     def default_fd_eps(self) -> float:
-        ext = float((self.aabb[3:] - self.aabb[:3]).max())
-        return 0.5 * ext / (self.resolutions[-1] - 1)
+        return 0.5 * self._extent / (self.resolutions[-1] - 1)
 
     def grid_features(self, x, band_weights=None):
         lo, hi = self.aabb[:3], self.aabb[3:]
@@ -333,6 +353,10 @@ class GridField(FieldBase):
 
     def grid_parameters(self):
         return list(self.grids.parameters())
+
+
+def _read_extent_after_load(module: GridField, incompatible_keys) -> None:
+    module._read_extent()  # a module-level function: a field with its hook still pickles
 
 
 def make_field(p: FieldParams) -> FieldBase:

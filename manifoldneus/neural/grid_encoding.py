@@ -24,6 +24,7 @@ for the Eikonal loss) asks for ``torch``.
 from __future__ import annotations
 
 import fcntl
+import functools
 import hashlib
 import logging
 import os
@@ -133,6 +134,13 @@ def encode(u: torch.Tensor, tables, kernel: str = "auto", resolutions=None) -> t
     return torch.cat(feats, 1)  # [N, L*C]
 
 
+@functools.lru_cache(maxsize=None)
+def _corners(device: torch.device) -> torch.Tensor:
+    """The 8 corners' offsets [8,3] (x, y, z bits of the corner's number), made once per device: built per
+    call they were 8 host-to-device copies a level, each a synchronisation on a GPU."""
+    return torch.tensor([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], device=device)
+
+
 def _hashed_level(u: torch.Tensor, table: torch.Tensor, R: int) -> torch.Tensor:
     """Trilinear look-up [N,C] of a hashed level (table [T,C], resolution R) at u [N,3] in [-1,1]."""
     p = (u + 1.0) * (0.5 * (R - 1))  # [N,3] in cells
@@ -140,8 +148,9 @@ def _hashed_level(u: torch.Tensor, table: torch.Tensor, R: int) -> torch.Tensor:
     f = p - i0  # [N,3]; differentiable in u
     i0 = i0.long()
     out = u.new_zeros(u.shape[0], table.shape[1])
+    corners = _corners(u.device) if not torch.compiler.is_compiling() else _corners.__wrapped__(u.device)
     for c in range(8):  # the cell's corners (8 vectorised gathers, not a loop over points)
-        b = torch.tensor([c & 1, (c >> 1) & 1, (c >> 2) & 1], device=u.device)
+        b = corners[c]
         idx = i0 + b  # [N,3]
         inside = ((idx >= 0) & (idx < R)).all(-1)  # [N]
         h = idx[:, 0] ^ ((idx[:, 1] * _PRIMES[1]) & 0xFFFFFFFF) ^ ((idx[:, 2] * _PRIMES[2]) & 0xFFFFFFFF)

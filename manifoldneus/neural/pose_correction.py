@@ -33,13 +33,14 @@ class PoseCorrections:
             self.mask[torch.as_tensor(np.asarray(trainable, int), dtype=torch.long, device=dev)] = 1.0
         if not translation:
             self.mask[:, :3] = 0.0  # rho: zero gradient, so AdamW (no decay on zeros) keeps it at zero
+        self._learning = bool(self.mask.any())  # read once: asked every step, a host read on a GPU
         self.opt = None
         if self.learning:
             self.opt = torch.optim.AdamW([{"params": [self.xi], "lr": lr, "base_lr": lr}], weight_decay=weight_decay)
 
     @property
     def learning(self) -> bool:
-        return bool(self.mask.any())
+        return self._learning
 
     def active(self, step: int) -> bool:
         """Whether the corrections move at ``step`` (learning, and not frozen any more)."""

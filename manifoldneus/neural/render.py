@@ -137,10 +137,11 @@ def resolve_background(kind: str, has_masks: bool, unmasked: str) -> str:
 class SDFCache:
     """SDF of a field sampled on a res^3 grid over [-radius, radius]^3 (no gradients)."""
 
-    def __init__(self, res: int = 64, radius: float = 1.0, device="cpu"):
+    def __init__(self, res: int = 64, radius: float = 1.0, device="cpu", kernel: str = "auto"):
         self.res, self.radius = res, radius
         self.grid: torch.Tensor | None = None  # [1,1,res,res,res] (D=z, H=y, W=x)
         self.device = device
+        self.kernel = kernel  # grid_encoding's kernel: 'torch' inside a compiled step (the fused one is opaque to it)
         self.n_updates = 0
 
     def points(self) -> torch.Tensor:
@@ -161,7 +162,7 @@ class SDFCache:
         shp = x.shape[:-1]
         # clamping to the cube is grid_sample's padding_mode="border" (align_corners=True)
         u = (x.reshape(-1, 3) / self.radius).float().clamp(-1.0, 1.0)
-        v = encode(u, [self.grid.view(self.res, self.res, self.res, 1)])
+        v = encode(u, [self.grid.view(self.res, self.res, self.res, 1)], self.kernel)
         return v.reshape(shp).to(x.dtype)
 
     def state_dict(self) -> dict:
@@ -229,7 +230,7 @@ def place_samples(field, o, d, near, far, p: RenderParams, cache: SDFCache | Non
         t_c = stratified(near, far, p.n_coarse, perturb)
         pts = o[:, None] + t_c[..., None] * d[:, None]
         f = cache.query(pts)
-        s = min(float(field.inv_s().detach()), p.cache_max_s)
+        s = field.inv_s().detach().clamp(max=p.cache_max_s)  # a tensor: no host read (a GPU's step would wait on it)
         w = alpha_to_weights(neus_alpha(f, s))  # [R, n_coarse-1] on sections between look-ups
         t_imp = sample_pdf(t_c, w, p.n_importance, det=not perturb)
         return torch.cat([t_uni, t_imp], -1).sort(-1).values, _expected_t(t_c, w)
@@ -391,7 +392,8 @@ def near_surface(field, pts: torch.Tensor, hit: torch.Tensor, p: RenderParams, c
     R, S = pts.shape[:2]
     f = cache.query(pts.detach())  # [R,S]
     cell = 2.0 * cache.radius / (cache.res - 1)
-    band = max(p.skip_band_cells * cell, p.skip_band_sigmas / float(field.inv_s().detach()))
+    # a tensor (no host read); in float64 as the Python float it replaces, so the band is the same to the bit
+    band = (p.skip_band_sigmas / field.inv_s().detach().double()).clamp(min=p.skip_band_cells * cell)
     near = (f.abs() < band) & hit[:, None]
     return f.reshape(-1), near.reshape(-1).nonzero()[:, 0]
 
