@@ -84,10 +84,11 @@ def normal_loss(n_world, n_prior_cam, R_w2c, valid):
     return l1 + cos
 
 
-def compute_losses(out: dict, batch: dict, p: LossParams):
+def compute_losses(out: dict, batch: dict, p: LossParams, host: bool = True):
     """out: render_rays output (rgb, opacity, depth, normal, eik_grad); batch: rgb [R,3] and optional
     mask [R] bool, mono_depth [R], mono_normal [R,3], view [R] long, R_w2c [R,3,3].
-    Returns (total loss, {name: float value}, {name: "on" | "off: <reason>"})."""
+    Returns (total loss, {name: float value}, {name: "on" | "off: <reason>"}); with ``host`` False the
+    values are detached 0-dim tensors (reading them is a host-device synchronisation on a GPU)."""
     terms, status = {}, {}
     mask = batch.get("mask")
 
@@ -118,7 +119,11 @@ def compute_losses(out: dict, batch: dict, p: LossParams):
         off("mask", "weight 0")
     else:
         op = out["opacity"].clamp(1e-3, 1 - 1e-3)
-        terms["mask"] = F.binary_cross_entropy(op, mask.to(op.dtype))
+        m = mask.to(op.dtype)
+        if host:
+            terms["mask"] = F.binary_cross_entropy(op, m)
+        else:  # the same BCE without torch's range check of the input: a host read, and on NaN an error, not a NaN
+            terms["mask"] = -(m * torch.log(op) + (1.0 - m) * torch.log1p(-op)).mean()
         status["mask"] = "on"
     # where geometric priors apply
     fg = mask if mask is not None else torch.ones_like(out["opacity"], dtype=torch.bool)
@@ -154,7 +159,7 @@ def compute_losses(out: dict, batch: dict, p: LossParams):
             status["normal"] = "on"
     weights = {"rgb": p.w_rgb, "eikonal": p.w_eikonal, "mask": p.w_mask, "depth": p.w_depth, "normal": p.w_normal}
     total = sum(weights[k] * v for k, v in terms.items())
-    return total, {k: float(v.detach()) for k, v in terms.items()}, status
+    return total, {k: float(v.detach()) if host else v.detach() for k, v in terms.items()}, status
 
 
 class SightLines:

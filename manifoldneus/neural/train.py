@@ -86,6 +86,19 @@ class TrainParams:
     pose_jump_deg: float = param(30.0, "A learned pose that turns by more than this between two rollback states (or "
                                  "becomes non-finite) counts as divergence (0 = no check)", lo=0.0)
     log_every: int = param(100, "Log every N iterations", lo=1)
+    check_every: int = param(1, "Read the loss and the gradients' finiteness on the host every N iterations (1 = every "
+                             "iteration). In between, the non-finite and divergence checks accumulate on the device "
+                             "and the ray indices of the N iterations are drawn at once, so a GPU's step waits on no "
+                             "host read; a failed check rolls back to the last good state, as the per-iteration check "
+                             "does. Logged and checkpointed iterations are checked; a resumed run repeats an "
+                             "uninterrupted one when ckpt_every is a multiple of N", lo=1)
+    compile: str = param("off", "torch.compile of the step's rendering and losses, forward and backward: 'default' "
+                         "(inductor's fused kernels: C++ on the CPU, triton on cuda), 'reduce-overhead' (the same "
+                         "with CUDA graphs) or 'off' (eager). Static shapes need render.skip_empty off and "
+                         "render.colour_min_weight 0 (else the graph breaks at their data-dependent sizes); the "
+                         "grids and the SDF cache then use the 'torch' kernel. Where torch.compile, triton (cuda) "
+                         "or a C++ compiler (CPU) is missing, a warning names it and the step runs eagerly",
+                         choices=["off", "default", "reduce-overhead"])
 
 
 @dataclass
@@ -103,6 +116,30 @@ class TrainRun:
     seed: int = 0
     threads: int = 0  # torch CPU threads (0 = leave torch's default)
     device: str = "cpu"
+
+
+LOSS_NAN, DIVERGED, GRAD_NAN = 1, 2, 4  # check_every > 1: the device-side flags of a failed check
+
+
+def compile_unavailable(device: torch.device) -> str | None:
+    """Why ``torch.compile`` cannot build the step on ``device`` (None: it can): torch without it, cuda
+    without triton, a CPU without a C++ compiler (inductor writes C++ there)."""
+    if not hasattr(torch, "compile"):
+        return f"torch {torch.__version__} has no torch.compile"
+    if device.type == "cuda":
+        try:
+            from torch.utils._triton import has_triton
+        except ImportError:
+            return "torch.utils._triton is missing"
+        return None if has_triton() else "triton is not installed (pip install triton)"
+    if device.type == "cpu":
+        import shutil
+
+        cxx = os.environ.get("CXX", "")
+        if not any(shutil.which(c) for c in (cxx, "g++", "c++", "clang++") if c):
+            return "no C++ compiler (g++, c++ or clang++; or $CXX) for inductor's CPU kernels"
+        return None
+    return f"no compiled step for device type {device.type!r}"
 
 
 def keep_freed_memory(threshold: int = 1 << 30) -> bool:
@@ -240,6 +277,11 @@ class Trainer:
             start=pose_start, lr=run.pose_lr, weight_decay=self.tp.pose_weight_decay,
             translation=run.learn_translation)
         self._build_optimizers()
+        self._loss_fn = self._render_losses if self.tp.compile == "off" else self._compiled(self._render_losses)
+        self._flags = None  # check_every > 1: failed checks since the last host read (bits: LOSS_NAN, DIVERGED, GRAD_NAN)
+        self._ema_t = None  # check_every > 1: the loss average on the device
+        self._ray_queue: list = []  # check_every > 1: the window's ray indices, drawn at once
+        self._last_loss = None  # check_every > 1: the last iteration's loss, unread
         self.step = 0
         self.lr_scale = 1.0
         self.rollbacks = 0
@@ -277,6 +319,50 @@ class Trainer:
         self.opt = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15 if grid_params else 1e-8,
                                     fused=fused)
 
+    def _compiled(self, fn):
+        """``fn`` compiled by torch.compile (``train.compile``), or ``fn`` itself with a warning that names what is
+        missing; a compilation that fails at the first call warns and the step runs ``fn`` from then on."""
+        why = compile_unavailable(self.device)
+        if why is not None:
+            log.warning("train.compile=%s: %s; the training step runs eagerly", self.tp.compile, why)
+            return fn
+        # the fused CPU grid kernel is a pybind call the compiler cannot see through (a graph break)
+        if getattr(self.field, "grid_kernel", "torch") != "torch":
+            log.warning("train.compile=%s: the grids use the 'torch' kernel (field.grid_kernel=%s is opaque to the "
+                        "compiler)", self.tp.compile, self.field.grid_kernel)
+            self.field.grid_kernel = "torch"
+        if self.cache is not None:
+            self.cache.kernel = "torch"
+        import torch._inductor.config as inductor_config
+
+        # random draws as eager's (torch's generator, not inductor's own): one seed gives the eager step's samples
+        inductor_config.fallback_random = True
+        compiled = torch.compile(fn, mode=self.tp.compile, dynamic=False)
+        state = {"failed": False}
+
+        def call(*args, **kwargs):
+            if state["failed"]:
+                return fn(*args, **kwargs)
+            try:
+                return compiled(*args, **kwargs)
+            except torch.OutOfMemoryError:
+                raise
+            except Exception as e:  # a missing piece found while compiling; a real error comes back eagerly
+                state["failed"] = True
+                log.warning("train.compile=%s failed (%s: %s); the training step runs eagerly", self.tp.compile,
+                            type(e).__name__, str(e).strip().splitlines()[0][:300] if str(e).strip() else "")
+                return fn(*args, **kwargs)
+
+        return call
+
+    def _render_losses(self, b: dict, bw, host: bool = True):
+        """(total loss, terms, status) of a batch: the part of the step ``train.compile`` compiles."""
+        # normals cost 4 extra field evaluations per ray: only the normal prior reads them
+        out = render_rays(self.field, b["o"], b["d"], self.rp, cache=self.cache, background=self.background,
+                          band_weights=bw, perturb=True, train=True,
+                          want_normals=self.mono_normal is not None and self.lp.w_normal > 0)
+        return compute_losses(out, b, self.lp, host=host)
+
     # ------------------------------------------------------------------ poses
     def poses(self) -> torch.Tensor:
         """Current world-to-camera poses [N,3,4] (corrected when poses are learned)."""
@@ -300,16 +386,26 @@ class Trainer:
     def sample_batch(self, n: int) -> dict:
         dev = self.device
         HW = self.H * self.W
-        nv = len(self.train_views)
         tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
         n_fg = int(round(n * self.tp.fg_ray_fraction)) if self._fg_flat is not None else 0
-        if self.sizes is None:
-            flat = torch.randint(0, nv * HW, (n - n_fg,), generator=self.rng).to(dev)
+        ce = self.tp.check_every
+        if ce > 1 and n == self.tp.batch_rays:
+            # the window's indices in one copy to the device (one per step is a synchronisation each on a GPU);
+            # windows start at multiples of check_every, so a run resumed at a checkpoint draws what it drew
+            if not self._ray_queue:
+                k = ce - self.step % ce
+                flat_k = self._draw_pixels(k * (n - n_fg)).reshape(k, n - n_fg)
+                pick_k = torch.randint(0, self._fg_flat.shape[0], (k, n_fg), generator=self.rng) if n_fg else None
+                both = flat_k if pick_k is None else torch.cat([flat_k, pick_k], 1)
+                self._ray_queue = list(both.to(dev).unbind(0))
+            flat = self._ray_queue.pop(0)
+            if n_fg:
+                flat = torch.cat([flat[:n - n_fg], self._fg_flat[flat[n - n_fg:]]])
         else:
-            flat = draw_pixels(n - n_fg, self.sizes[self.train_views], self.H, self.W, self.rng).to(dev)
-        if n_fg:
-            pick = torch.randint(0, self._fg_flat.shape[0], (n_fg,), generator=self.rng).to(dev)
-            flat = torch.cat([flat, self._fg_flat[pick]])
+            flat = self._draw_pixels(n - n_fg).to(dev)
+            if n_fg:
+                pick = torch.randint(0, self._fg_flat.shape[0], (n_fg,), generator=self.rng).to(dev)
+                flat = torch.cat([flat, self._fg_flat[pick]])
         view = tv[flat // HW]
         pix = flat % HW
         rows, cols = pix // self.W, pix % self.W
@@ -321,6 +417,12 @@ class Trainer:
         b["mono_depth"] = None if self.mono_depth is None else self.mono_depth[view, pix]
         b["mono_normal"] = None if self.mono_normal is None else self.mono_normal[view, pix]
         return b
+
+    def _draw_pixels(self, m: int) -> torch.Tensor:
+        """``m`` flat pixel indices [m] over the training views (on the CPU, from the run's generator)."""
+        if self.sizes is None:
+            return torch.randint(0, len(self.train_views) * self.H * self.W, (m,), generator=self.rng)
+        return draw_pixels(m, self.sizes[self.train_views], self.H, self.W, self.rng)
 
     def band_weights(self, view: torch.Tensor, step: int):
         if self.band_weight_fn is not None:
@@ -373,6 +475,9 @@ class Trainer:
             if s.get("cuda_rng") is not None and self.device.type == "cuda":
                 torch.cuda.set_rng_state_all([state.cpu() for state in s["cuda_rng"]])
         self._loss_ema = s.get("loss_ema")
+        self._ema_t = None if self._loss_ema is None else torch.tensor(self._loss_ema, dtype=torch.float64,
+                                                                      device=self.device)
+        self._flags, self._ray_queue = None, []
         self.loss_status = dict(s.get("loss_status", {}))
         self.history = list(s.get("history", []))
         self.events = list(s.get("events", []))
@@ -435,7 +540,7 @@ class Trainer:
         self.lr_scale *= self.tp.rollback_lr_factor
         self._good_state["lr_scale"] = self.lr_scale
         self._good_state["rollbacks"] = self.rollbacks
-        self._loss_ema = None
+        self._loss_ema = self._ema_t = None
         ev = {"event": "rollback", "at_step": bad_step, "to_step": self.step, "reason": reason,
               "lr_scale": self.lr_scale}
         self.events.append(ev)
@@ -467,40 +572,14 @@ class Trainer:
             self.field.train(was)
 
     def train_step(self, inject_nan: bool = False) -> dict:
-        """One iteration. Returns {'loss', 'terms', 'status'} (or a rollback record)."""
-        if self.cache is not None and (self.cache.grid is None or self.step % self.rp.cache_every == 0):
-            with record_function("train/sdf_cache"):
-                self.update_cache()
-        if self._good_state is None:
-            self._snapshot()
-        self.set_lr()
-        with record_function("train/sample_rays"):
-            b = self.sample_batch(self.tp.batch_rays)
-            bw = self.band_weights(b["view"], self.step)
-        with record_function("train/render"):
-            # normals cost 4 extra field evaluations per ray: only the normal prior reads them
-            out = render_rays(self.field, b["o"], b["d"], self.rp, cache=self.cache, background=self.background,
-                              band_weights=bw, perturb=True, train=True,
-                              want_normals=self.mono_normal is not None and self.lp.w_normal > 0)
-        with record_function("train/losses"):
-            total, terms, status = compute_losses(out, b, self.lp)
-            if self.free_space is not None:
-                free = self.free_space(self.field.sdf, self.rng)
-                total = total + self.lp.w_free_space * free
-                terms["free_space"], status["free_space"] = float(free.detach()), "on"
-        field_loss = float(total.detach())  # what the divergence check watches (the pose term jumps by design)
-        lv = field_loss
-        if self.pose_loss is not None and self.cams.active(self.step):
-            with record_function("train/pose_term"):
-                extra = self.pose_loss(self.poses(), self.rng, self.step)
-            if extra is not None:
-                terms["corr"] = float(extra.detach())
-                total = total + self.pose_loss.weight * extra
-                lv = field_loss + self.pose_loss.weight * terms["corr"]  # no second device sync
+        """One iteration. Returns {'loss', 'terms', 'status', 'info'} (or a rollback record); with
+        ``train.check_every`` > 1, 'loss' is None and 'terms' empty between checks (see :meth:`_deferred_step`)."""
+        if self.tp.check_every > 1:
+            return self._deferred_step(inject_nan)
+        total, field_loss, lv, terms, status = self._step_losses(host=True)
         if inject_nan:
             total = total * float("nan")
             lv = float("nan")
-        self.loss_status = status
         if not math.isfinite(lv):
             self._rollback("non-finite loss")
             return {"rollback": True}
@@ -526,6 +605,47 @@ class Trainer:
             self.opt.step()
             self.cams.step()
         self.step += 1
+        return self._step_record(lv, terms, status)
+
+    def _step_losses(self, host: bool):
+        """The iteration up to its loss: the SDF cache, the first rollback state, the lr, the batch, the render,
+        its losses and the free-space and pose terms. Returns (total, field loss, logged loss, terms, status);
+        the losses and terms are floats with ``host``, else tensors (no host read)."""
+        if self.cache is not None and (self.cache.grid is None or self.step % self.rp.cache_every == 0):
+            with record_function("train/sdf_cache"):
+                self.update_cache()
+        if self._good_state is None:
+            self._snapshot()
+        self.set_lr()
+        with record_function("train/sample_rays"):
+            b = self.sample_batch(self.tp.batch_rays)
+            bw = self.band_weights(b["view"], self.step)
+        with record_function("train/render"):
+            if host and self.tp.compile == "off":
+                total, terms, status = self._render_losses(b, bw)
+            else:  # a compiled graph holds no host read: the terms come back as tensors
+                total, terms, status = self._loss_fn(b, bw, host=False)
+                terms = {k: float(v) for k, v in terms.items()} if host else terms
+        read = float if host else torch.Tensor.detach
+        with record_function("train/losses"):
+            if self.free_space is not None:
+                free = self.free_space(self.field.sdf, self.rng)
+                total = total + self.lp.w_free_space * free
+                terms["free_space"], status["free_space"] = read(free.detach()), "on"
+        field_loss = read(total.detach())  # what the divergence check watches (the pose term jumps by design)
+        lv = field_loss
+        if self.pose_loss is not None and self.cams.active(self.step):
+            with record_function("train/pose_term"):
+                extra = self.pose_loss(self.poses(), self.rng, self.step)
+            if extra is not None:
+                terms["corr"] = read(extra.detach())
+                total = total + self.pose_loss.weight * extra
+                lv = field_loss + self.pose_loss.weight * terms["corr"]  # no second device sync
+        self.loss_status = status
+        return total, field_loss, lv, terms, status
+
+    def _step_record(self, lv: float, terms: dict, status: dict) -> dict:
+        """After an iteration's update: its history entry (every log_every) and rollback state (every ckpt_every)."""
         info = None
         if self.step % self.tp.log_every == 0 or self.step == self._target:
             # recorded before the snapshot below, so a checkpoint's history includes its own step
@@ -541,6 +661,58 @@ class Trainer:
                 return {"rollback": True}
             self._snapshot()
         return {"loss": lv, "terms": terms, "status": status, "info": info}
+
+    def _deferred_step(self, inject_nan: bool) -> dict:
+        """:meth:`train_step` with ``train.check_every`` > 1: the same iteration, its checks kept on the device.
+        The loss, its running mean and the flags of a non-finite loss, a divergence or a non-finite gradient stay
+        tensors; every check_every-th iteration (and every logged or checkpointed one) reads them in one host
+        read and, if a flag is set, rolls back to the last good state as :meth:`train_step` does at once."""
+        total, field_loss, lv, terms, status = self._step_losses(host=False)
+        if inject_nan:
+            total = total * float("nan")
+            lv = lv * float("nan")
+        self._last_loss = lv
+        loss64 = field_loss.double()  # the running mean in float64, as the Python float of train_step
+        flags = (~torch.isfinite(lv)).to(torch.uint8) * LOSS_NAN
+        if self._ema_t is not None and self.step > self.warmup:
+            flags = flags | (loss64 > self.tp.diverge_factor * self._ema_t).to(torch.uint8) * DIVERGED
+        self._ema_t = loss64 if self._ema_t is None else 0.98 * self._ema_t + 0.02 * loss64
+        self.opt.zero_grad(set_to_none=True)
+        self.cams.zero_grad()
+        with record_function("train/backward"):
+            total.backward()
+        grads = [p.grad for p in self.field.parameters() if p.grad is not None]
+        if grads:  # one multi-tensor norm: a NaN / inf anywhere makes its tensor's norm non-finite
+            finite = torch.isfinite(torch.stack(torch._foreach_norm(grads))).all()
+            flags = flags | (~finite).to(torch.uint8) * GRAD_NAN
+        self._flags = flags if self._flags is None else self._flags | flags
+        with record_function("train/optimiser"):
+            self.opt.step()
+            self.cams.step()
+        self.step += 1
+        if (self.step % self.tp.check_every and self.step % self.tp.log_every and self.step != self._target
+                and self.step % self.tp.ckpt_every):
+            return {"loss": None, "terms": {}, "status": status, "info": None}
+        checked = self._check(lv, terms)
+        if checked is None:
+            return {"rollback": True}
+        return self._step_record(*checked, status)
+
+    def _check(self, lv: torch.Tensor, terms: dict):
+        """The deferred checks of the iterations since the last: one host read of the flags, the running mean,
+        the loss and its terms. Rolls back (and returns None) if a flag is set, else (loss, {term: float})."""
+        if self._flags is None:
+            return float(lv), {k: float(v) for k, v in terms.items()}
+        values = torch.stack([self._flags.double(), self._ema_t, lv.double(),
+                              *(v.double() for v in terms.values())]).tolist()
+        flags, self._flags = int(values[0]), None
+        if flags:
+            why = ("non-finite loss" if flags & LOSS_NAN else
+                   f"loss > {self.tp.diverge_factor} x running mean" if flags & DIVERGED else "non-finite gradient")
+            self._rollback(f"{why} (checked every {self.tp.check_every} iterations)")
+            return None
+        self._loss_ema = values[1]
+        return values[2], dict(zip(terms, values[3:]))
 
     def pose_jump(self) -> str | None:
         """Why the learned poses count as diverged since the last rollback state, or None."""
@@ -585,8 +757,11 @@ class Trainer:
                 log.info("time budget %.0f s reached at step %d", budget, self.step)
                 break
         self.field.eval()
+        if last.get("loss", 0.0) is None:  # check_every > 1, stopped between checks (a time budget): check now
+            checked = self._check(self._last_loss, {})
+            last = {"loss": None if checked is None else checked[0]}
         # a run resumed at its last step trains no step here: its final loss is its history's last
-        final = last.get("loss", self.history[-1]["loss"] if self.history else None)
+        final = last.get("loss") if last.get("loss") is not None else (self.history[-1]["loss"] if self.history else None)
         return {"steps": self.step, "seconds": time.time() - t_wall, "final_loss": final,
                 "loss_status": self.loss_status, "rollbacks": self.rollbacks, "events": list(self.events),
                 "background": self.bg_kind}
