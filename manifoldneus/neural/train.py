@@ -278,7 +278,7 @@ class Trainer:
             translation=run.learn_translation)
         self._build_optimizers()
         self._loss_fn = self._render_losses if self.tp.compile == "off" else self._compiled(self._render_losses)
-        self._flags = None  # check_every > 1: failed checks since the last host read (bits: LOSS_NAN, DIVERGED, GRAD_NAN)
+        self._flags = None  # check_every > 1: the failed checks since the last host read (LOSS_NAN | DIVERGED | GRAD_NAN)
         self._ema_t = None  # check_every > 1: the loss average on the device
         self._ray_queue: list = []  # check_every > 1: the window's ray indices, drawn at once
         self._last_loss = None  # check_every > 1: the last iteration's loss, unread
@@ -337,6 +337,11 @@ class Trainer:
 
         # random draws as eager's (torch's generator, not inductor's own): one seed gives the eager step's samples
         inductor_config.fallback_random = True
+        import torch._dynamo.config as dynamo_config
+
+        # each trainer (one per stage and round of a run, in one process) is a new `self` to the step's guards: a
+        # recompilation each; past dynamo's limit (8) its later trainers would run eagerly without a word
+        dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, 64)
         compiled = torch.compile(fn, mode=self.tp.compile, dynamic=False)
         state = {"failed": False}
 
