@@ -116,10 +116,10 @@ def main() -> int:
         except Exception as e:  # one form's failure (out of memory, a compiler's error) leaves the others
             print(f"{form:>16}: FAILED {type(e).__name__}: {str(e).strip()[:400]}", flush=True)
             runs.append({"form": form, "error": f"{type(e).__name__}: {str(e).strip()[:2000]}"})
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"profile": args.profile, "scene": args.scene, "set": args.set,
-                                         "torch": torch.__version__, "runs": runs}, indent=2) + "\n")
+        if args.json:  # after every form: a run stopped by its time limit keeps the forms it measured
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"profile": args.profile, "scene": args.scene, "set": args.set,
+                                             "torch": torch.__version__, "runs": runs}, indent=2) + "\n")
     return 0 if all("error" not in r for r in runs) else 1
 
 
