@@ -155,7 +155,9 @@ def _hashed_level(u: torch.Tensor, table: torch.Tensor, R: int) -> torch.Tensor:
         inside = ((idx >= 0) & (idx < R)).all(-1)  # [N]
         h = idx[:, 0] ^ ((idx[:, 1] * _PRIMES[1]) & 0xFFFFFFFF) ^ ((idx[:, 2] * _PRIMES[2]) & 0xFFFFFFFF)
         row = torch.where(inside, h % table.shape[0], torch.zeros_like(h))
-        w = torch.where(b.bool(), f, 1.0 - f).prod(-1) * inside  # [N]
+        wc = torch.where(b.bool(), f, 1.0 - f)  # [N,3]
+        # the product written out: prod's backward reads on the host whether a factor is 0 (a GPU waits on it)
+        w = wc[:, 0] * wc[:, 1] * wc[:, 2] * inside  # [N]
         out = out + w[:, None] * table[row]
     return out
 
