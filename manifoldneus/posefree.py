@@ -186,10 +186,11 @@ class Round:
         self.full_K = self.K_all[self.ids]
         run = train_run(cfg.run, iters, poses)
         gate_p = cfg.gate
-        s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids])
+        device = cfg.run.device
+        # on the run's device once: the gate reads it every step (a copy a step is a synchronisation on a GPU)
+        s_sub = torch.as_tensor(np.asarray(s_tilde_all, np.float32)[self.ids], device=device)
         self.corr_p = cfg.correspondence
         self.corr = None
-        device = cfg.run.device
         if learn_poses and self.corr_p.kind == "reprojection":
             from manifoldneus.sfm.pose_init import MapperOptions, init_from_matches
 

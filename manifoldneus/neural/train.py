@@ -282,6 +282,7 @@ class Trainer:
         self._ema_t = None  # check_every > 1: the loss average on the device
         self._ray_queue: list = []  # check_every > 1: the window's ray indices, drawn at once
         self._last_loss = None  # check_every > 1: the last iteration's loss, unread
+        self._tv = None  # (train_views, the same on the device)
         self.step = 0
         self.lr_scale = 1.0
         self.rollbacks = 0
@@ -391,7 +392,9 @@ class Trainer:
     def sample_batch(self, n: int) -> dict:
         dev = self.device
         HW = self.H * self.W
-        tv = torch.as_tensor(self.train_views, dtype=torch.long, device=dev)
+        if self._tv is None or self._tv[0] is not self.train_views:  # copied to the device once, not every step
+            self._tv = (self.train_views, torch.as_tensor(self.train_views, dtype=torch.long, device=dev))
+        tv = self._tv[1]
         n_fg = int(round(n * self.tp.fg_ray_fraction)) if self._fg_flat is not None else 0
         ce = self.tp.check_every
         if ce > 1 and n == self.tp.batch_rays:
