@@ -96,7 +96,8 @@ class FakeCtx:
 
 def make_ingest(root: Path, images: np.ndarray, K: np.ndarray, names: list[str], intrinsics_source="calibrated") -> Path:
     root.mkdir(parents=True, exist_ok=True)
-    io.save_arrays(root / "views.zarr", {"images": images, "K": K})
+    sizes = np.tile(np.asarray(images.shape[1:3], np.int64), (len(images), 1))  # one size, as ingest writes it
+    io.save_arrays(root / "views.zarr", {"images": images, "sizes": sizes, "K": K})
     io.save_json(root / "views.json", {"names": names, "height": images.shape[1], "width": images.shape[2],
                                        "layout": "test", "intrinsics_source": intrinsics_source,
                                        "has_masks": False, "has_mono_depth": False,
