@@ -39,6 +39,10 @@ SETTINGS = {
     "alpha=0.5": ["schedule.alpha=0.5"],
     "alpha=0.35": ["schedule.alpha=0.35"],
     "fps-se": ["schedule.strategy=fps", "schedule.coverage=SE"],
+    # the images alone (the photos-alone preset's ingest) and its self-calibration's principal-point test
+    "photos-alone": ["ingest.use_calibration=false", "ingest.load_masks=false"],
+    "photos-alone-pp-p0.1": ["ingest.use_calibration=false", "ingest.load_masks=false", "anchors.principal_point_p=0.1"],
+    "photos-alone-pp-free": ["ingest.use_calibration=false", "ingest.load_masks=false", "anchors.principal_point_p=1.0"],
 }
 
 
@@ -79,6 +83,7 @@ def one(scene_name: str, setting: str, overrides: list[str], artifacts: Path) ->
         inputs, refine, _, _ = anchors_stage.calibrated_inputs(env, inputs, p)
         res = anchors_stage.matches_init(env, inputs, anchors, p, refine)
         seconds = time.perf_counter() - t0
+    principal_point = inputs.views.K[anchors][:, :2, 2].mean(0)  # [2] after the self-calibration, if any
     ids = res.view_ids
     row = {v: k for k, v in enumerate(ids)}
     w2c = np.tile(np.eye(4), (len(inputs.names), 1, 1))
@@ -91,7 +96,7 @@ def one(scene_name: str, setting: str, overrides: list[str], artifacts: Path) ->
            "n_unplaced": len(unplaced), "unplaced": unplaced,
            "bridges": len(ids) - len(anchors), "seconds": seconds,
            "rot_deg_mean": float(np.nanmean(rot)), "rot_deg_max": float(np.nanmax(rot)),
-           "centre_mean": float(np.nanmean(ev["center_err_units"]))}
+           "centre_mean": float(np.nanmean(ev["center_err_units"])), "principal_point": principal_point.tolist()}
     # round-1 placement against the initialisation's points
     obs = {"points": res.points, "obs_view": res.obs_view, "obs_point": res.obs_point, "obs_uv": res.obs_uv}
     new = [int(v) for v in np.flatnonzero((rounds == 1) & inputs.train_mask)]
@@ -131,7 +136,8 @@ def main(argv=None) -> int:
             print(f"{scene:11s} {setting:11s} anchors {row['n_anchors']:3d} unplaced {row['n_unplaced']:2d} "
                   f"rot {row['rot_deg_mean']:8.3f} (max {row['rot_deg_max']:8.3f}) deg  centre {row['centre_mean']:.4f}"
                   f"  {row['seconds']:6.1f} s  round 1: {row.get('round1_solved', '-')}/{row.get('round1_views', '-')} "
-                  f"rot {row.get('round1_rot_deg_mean') or float('nan'):.3f} deg", flush=True)
+                  f"rot {row.get('round1_rot_deg_mean') or float('nan'):.3f} deg  principal point "
+                  f"({row['principal_point'][0]:.1f}, {row['principal_point'][1]:.1f})", flush=True)
     out = args.out_dir / "init" / f"{args.label}-{dt.date.today().isoformat()}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     io.save_json(out, {"label": args.label, "rows": rows})
