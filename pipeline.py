@@ -64,7 +64,7 @@ def _parser() -> argparse.ArgumentParser:
             sp.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                             help="override one parameter for this command (repeat it for several); "
                                  "docs/USAGE.md and `pipeline.py params-diff STAGE` name the keys")
-            sp.add_argument("--profile", default=None, help="fast | quick | paper (default: params.yaml's `profile`)")
+            sp.add_argument("--profile", default=None, help="fast | quick | paper | gpu (default: params.yaml's `profile`)")
             sp.add_argument("--preset", default=None, help="a named preset from params.yaml (e.g. neus-barf); "
                                                            "its versions keep their own `current@PRESET` pointers")
 
