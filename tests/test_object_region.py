@@ -261,17 +261,22 @@ def test_the_free_space_term_is_on_without_masks_only(on_a_floor, tmp_path):
     assert np.median(gap) < 1e-4  # most from the anchors themselves (a bridge view's are not anchors)
 
 
+def _analytic_trainer(sdf, size: int):
+    """What :func:`evaluation.make_mesh` reads of a trainer, for an SDF given in closed form (numpy [P,3] -> [P])."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(sdf_fn=lambda: sdf, rp=SimpleNamespace(radius=1.0), H=size, W=size)
+
+
 def _ball_on_a_table(support: str):
     """Mesh of a ball (radius 0.4) standing in a table (top at z = -0.3), cropped to a region whose plane is the
     table's top: ``meshing.support`` cut or keep."""
-    from types import SimpleNamespace
-
     from manifoldneus.output import evaluation
 
     def sdf(p):
         return np.minimum(np.linalg.norm(p, axis=1) - 0.4, np.abs(p[:, 2] + 0.32) - 0.02)
 
-    trainer = SimpleNamespace(sdf_fn=lambda: sdf, rp=SimpleNamespace(radius=1.0), H=64, W=64)
+    trainer = _analytic_trainer(sdf, 64)
     region = object_region.ObjectRegion([0.0, 0.0, 0.0], 0.8, [0.0, 0.0, 1.0, 0.3])
     p = evaluation.MeshParams(resolution=64, crop_to_object="on", silhouette_vote=0.0, cull_unseen=False,
                               keep_components=0, support=support)
@@ -301,8 +306,6 @@ def test_the_support_is_cut_along_its_plane_or_kept_whole():
 def test_surface_hidden_in_every_view_goes_even_when_the_crop_removes_what_hid_it():
     """Visibility is decided on the field's whole surface, before the crop: a shell inside background surface
     (what the rounds' field leaves behind a support) stays hidden although the crop then drops the background."""
-    from types import SimpleNamespace
-
     from manifoldneus.output import evaluation
 
     def sdf(p):  # a small ball (hidden) inside a closed shell of radius 0.5 (outside the object's region)
@@ -310,7 +313,7 @@ def test_surface_hidden_in_every_view_goes_even_when_the_crop_removes_what_hid_i
         return np.minimum(r - 0.1, np.abs(r - 0.5) - 0.02)
 
     K, w2c, sizes = _views()
-    trainer = SimpleNamespace(sdf_fn=lambda: sdf, rp=SimpleNamespace(radius=1.0), H=128, W=128)
+    trainer = _analytic_trainer(sdf, 128)
     p = evaluation.MeshParams(resolution=96, crop_to_object="on", silhouette_vote=0.0, keep_components=0,
                               visibility_size=64)  # the shell's vertices close its z-buffer
     mesh = evaluation.make_mesh(trainer, p, K, w2c, hw=tuple(sizes[0]), region=object_region.ObjectRegion([0.0] * 3, 0.3))

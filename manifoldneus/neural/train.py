@@ -598,22 +598,30 @@ class Trainer:
             self._rollback(f"loss {field_loss:.4g} > {self.tp.diverge_factor} x running mean {self._loss_ema:.4g}")
             return {"rollback": True}
         self._loss_ema = field_loss if self._loss_ema is None else 0.98 * self._loss_ema + 0.02 * field_loss
-        self.opt.zero_grad(set_to_none=True)
-        self.cams.zero_grad()
-        with record_function("train/backward"):
-            total.backward()
+        grads = self._backward(total)
         # one reduction per tensor: a NaN / inf anywhere makes its sum non-finite
-        grads = [p.grad for p in self.field.parameters() if p.grad is not None]
         if grads and not bool(torch.isfinite(torch.stack([g.sum() for g in grads])).all()):
             bad = next(n for n, p in self.field.named_parameters()
                        if p.grad is not None and not torch.isfinite(p.grad).all())
             self._rollback(f"non-finite gradient in {bad}")
             return {"rollback": True}
+        self._update()
+        return self._step_record(lv, terms, status)
+
+    def _backward(self, total: torch.Tensor) -> list:
+        """The gradients of ``total``; returns the field's (those that exist)."""
+        self.opt.zero_grad(set_to_none=True)
+        self.cams.zero_grad()
+        with record_function("train/backward"):
+            total.backward()
+        return [p.grad for p in self.field.parameters() if p.grad is not None]
+
+    def _update(self) -> None:
+        """The optimisers' step of an iteration whose checks passed (or are deferred)."""
         with record_function("train/optimiser"):
             self.opt.step()
             self.cams.step()
         self.step += 1
-        return self._step_record(lv, terms, status)
 
     def _step_losses(self, host: bool):
         """The iteration up to its loss: the SDF cache, the first rollback state, the lr, the batch, the render,
@@ -685,19 +693,12 @@ class Trainer:
         if self._ema_t is not None and self.step > self.warmup:
             flags = flags | (loss64 > self.tp.diverge_factor * self._ema_t).to(torch.uint8) * DIVERGED
         self._ema_t = loss64 if self._ema_t is None else 0.98 * self._ema_t + 0.02 * loss64
-        self.opt.zero_grad(set_to_none=True)
-        self.cams.zero_grad()
-        with record_function("train/backward"):
-            total.backward()
-        grads = [p.grad for p in self.field.parameters() if p.grad is not None]
+        grads = self._backward(total)
         if grads:  # one multi-tensor norm: a NaN / inf anywhere makes its tensor's norm non-finite
             finite = torch.isfinite(torch.stack(torch._foreach_norm(grads))).all()
             flags = flags | (~finite).to(torch.uint8) * GRAD_NAN
         self._flags = flags if self._flags is None else self._flags | flags
-        with record_function("train/optimiser"):
-            self.opt.step()
-            self.cams.step()
-        self.step += 1
+        self._update()
         if (self.step % self.tp.check_every and self.step % self.tp.log_every and self.step != self._target
                 and self.step % self.tp.ckpt_every):
             return {"loss": None, "terms": {}, "status": status, "info": None}

@@ -37,8 +37,7 @@ def image_filename(name: str, suffix: str = ".png") -> str:
 def image_sizes(width, height, n: int) -> np.ndarray:
     """[n,2] (width, height) of each view: ``width`` and ``height`` one for all, or one per view [n] each
     (photos of several sizes)."""
-    return np.stack(np.broadcast_arrays(np.asarray(width), np.asarray(height)), -1).astype(np.int64) * np.ones(
-        (n, 1), np.int64)
+    return np.stack([np.broadcast_to(np.asarray(v, np.int64), (n,)) for v in (width, height)], -1)
 
 
 def shared_cameras(K: np.ndarray, valid: np.ndarray, sizes: np.ndarray | None = None) -> np.ndarray:
