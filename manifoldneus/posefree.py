@@ -319,7 +319,8 @@ class Round:
 
     def poses_all(self) -> np.ndarray:
         out = np.array(self.w2c_init)
-        moved = np.asarray(self.guard.get("keep", np.ones(len(self.ids), bool)), bool)  # [n]
+        learnt = self.trainer.cams.learning or (self.polish is not None and self.polish.steps > 0)
+        moved = np.asarray(self.guard.get("keep", np.full(len(self.ids), learnt)), bool)  # [n]
         out[self.ids[moved]] = self.trainer.poses_numpy()[moved]  # the others stay at their start, to the last bit
         return out
 

@@ -308,6 +308,11 @@ def mapper_options(inputs: posefree.SceneInputs, p: Params, seed: int, refine=()
                                    principal_point_p=p.principal_point_p, radial_p=p.radial_p, seed=seed)
 
 
+def gauge_options(p: Params) -> pose_init.GaugeOptions:
+    """The unit-sphere gauge the anchors fit to their SfM's points (the successors' restart fits the same)."""
+    return pose_init.GaugeOptions(p.gauge_radius, p.gauge_percentile, p.gauge_centre, p.object_min_seen)
+
+
 def self_calibrate(env: InitEnv, inputs: posefree.SceneInputs, refine, p: Params
                    ) -> tuple[np.ndarray, np.ndarray | None, dict, pose_init.InitResult | None]:
     """The shared camera's intrinsics ``refine`` estimated by COLMAP's mapper and bundle adjustment on every
@@ -348,8 +353,7 @@ def matches_init(env: InitEnv, inputs: posefree.SceneInputs, anchors: list[int],
     with io.native_output_to(env.log_path):  # COLMAP's own log goes to log.txt
         return pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W,
                                            sizes=inputs.sizes, mapper=mapper_options(inputs, p, env.seed, refine),
-                                           gauge=pose_init.GaugeOptions(p.gauge_radius, p.gauge_percentile,
-                                                                        p.gauge_centre, p.object_min_seen),
+                                           gauge=gauge_options(p),
                                            masks=masks, log=env.log.info)
 
 

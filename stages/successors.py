@@ -17,6 +17,7 @@ from manifoldneus.data import artifacts, io
 from manifoldneus.sfm import pose_init
 from manifoldneus import posefree
 from manifoldneus.config import param
+from stages import anchors  # COLMAP's mapper and gauge as the anchors run them
 
 
 @dataclass
@@ -71,21 +72,26 @@ class Params:
 
 
 UPSTREAM = ("ingest", "features", "matching", "covisibility", "schedule", "anchors")
-SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "correspondence", "run")
+SECTIONS = ("successors", "train", "field", "render", "loss", "gate", "correspondence", "run", "anchors.reproj_px",
+            "anchors.ba_loss", "anchors.ba_loss_px", "anchors.principal_point_p", "anchors.radial_p",
+            "anchors.gauge_radius", "anchors.gauge_percentile", "anchors.gauge_centre", "anchors.object_min_seen")
 OUTPUTS = (artifacts.FINAL_ROUND,)
 
 
-def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: float,
-                      seed: int = 0) -> tuple[dict, np.ndarray | None]:
-    """Poses of placed + new views from an incremental SfM over them (verified matches only),
-    brought into the model's frame by the Sim3 that maps its placed views onto their optimised
-    poses; views the SfM did not register are left out. Returns the poses by view and that Sim3 as a
-    4x4 (the SfM's world -> the model's; None where fewer than 3 placed views registered)."""
+def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, mapper: pose_init.MapperOptions,
+                      gauge: pose_init.GaugeOptions) -> tuple[dict, np.ndarray | None]:
+    """Poses of placed + new views from an incremental SfM over them (verified matches only; COLMAP's
+    mapper as the anchors run it, K held, in the anchors' gauge of its points: over every view it is
+    `sfm-all`'s SfM, to the bit), brought into the model's frame by the Sim3 that maps its placed views
+    onto their optimised poses; views the SfM did not register are left out. Returns the poses by view and
+    that Sim3 as a 4x4 (the SfM's gauge frame -> the model's; None where fewer than 3 placed views
+    registered)."""
     from manifoldneus.geometry import cameras
 
     ids = sorted(set(map(int, placed_ids)) | set(map(int, new_ids)))
+    masks = None if inputs.views.masks is None else [inputs.views.masks[v] for v in ids]
     res = pose_init.init_from_matches(ids, inputs.views.K, inputs.keypoints, inputs.pairs, inputs.W, sizes=inputs.sizes,
-                                      mapper=pose_init.MapperOptions(reproj_px=reproj_px, seed=seed))
+                                      mapper=mapper, gauge=gauge, masks=masks)
     row = {v: k for k, v in enumerate(ids)}
     ok = [v for v in placed_ids if res.placed[row[v]]]
     if len(ok) < 3:
@@ -98,7 +104,6 @@ def matches_placement(inputs, placed_ids, new_ids, w2c: np.ndarray, reproj_px: f
 def run(ctx) -> None:
     p: Params = ctx.params
     cfg = posefree.RoundConfig.from_sections(ctx.section, ctx.log_path)
-    seed = cfg.run.seed  # COLMAP's random choices: the SfM a round restarts from is sfm-all's of the same seed
     inputs = posefree.load_inputs(**{s: ctx.input(s) for s in posefree.INPUT_STAGES})
     rounds = inputs.schedule["round"]
     n_rounds = int(rounds.max()) if (rounds >= 0).any() else 0
@@ -108,6 +113,8 @@ def run(ctx) -> None:
     prev_dir = ctx.input("anchors") / artifacts.ANCHOR_ROUND
     prev = artifacts.load_round(prev_dir)
     inputs = posefree.with_intrinsics(inputs, prev["K"], prev.get("distortion"))  # the anchors' (refined, if they were)
+    anchors_p = ctx.section("anchors")  # the SfM a round restarts from is sfm-all's of the same seed, K held
+    sfm = (anchors.mapper_options(inputs, anchors_p, cfg.run.seed), anchors.gauge_options(anchors_p))
     carry = {k: v for k, v in torch.load(prev_dir / artifacts.MODEL, map_location="cpu", weights_only=False).items()
              if k in ("field", "background", "cache")}
     w2c, placed = prev["w2c"], prev["placed"].astype(bool)
@@ -123,7 +130,7 @@ def run(ctx) -> None:
         restart = p.sfm_restart == "every" or (p.sfm_restart == "last" and r == n_rounds)
         if restart and len(before):  # first, so that depth PnP places the new views against the restarted poses
             with io.native_output_to(ctx.log_path):
-                from_matches, round_from_sfm = matches_placement(inputs, before, new, w2c, p.pnp_reproj_px, seed)
+                from_matches, round_from_sfm = matches_placement(inputs, before, new, w2c, *sfm)
             moved = [int(v) for v in before if v in from_matches]
             for v in moved:
                 w2c[v] = from_matches[v]
@@ -144,8 +151,7 @@ def run(ctx) -> None:
             if p.placement == "matches" or info["method"] != "pnp":
                 if from_matches is None:
                     with io.native_output_to(ctx.log_path):  # COLMAP's own log goes to log.txt
-                        from_matches, round_from_sfm = matches_placement(inputs, before, new, w2c,
-                                                                         p.pnp_reproj_px, seed)
+                        from_matches, round_from_sfm = matches_placement(inputs, before, new, w2c, *sfm)
                 if from_matches.get(v) is not None:
                     pose, info = from_matches[v], {"method": "matches", "after": info["method"] if p.placement == "depth" else None}
             init[inputs.names[v]] = info

@@ -37,10 +37,10 @@ class Params:
     frame: str = param("views", "The field's normalisation: views (the object's SfM points of every posed view, "
                        "scaled and centred as the anchors' gauge does with theirs) or rounds (the anchors' gauge, "
                        "fitted to the anchors' points only)", choices=["views", "rounds"])
-    axes: str = param("sfm", "The axes of the views' frame (its grid box is axis-aligned): sfm (the world axes of "
-                      "the matches' SfM the last round placed its views from, sfm-all's own: the same box as NeuS "
-                      "on sfm-all's poses; the rounds' where that round kept none) or rounds (the anchors' SfM's)",
-                      choices=["sfm", "rounds"])
+    axes: str = param("sfm", "The views' frame: sfm (the gauge of the matches' SfM the last round placed its views "
+                      "from, sfm-all's own: where the round kept none of its views' updates, NeuS on sfm-all's poses "
+                      "to the bit; the gauge refitted to the round's tracks where it placed none from the SfM) or "
+                      "rounds (that refit in the anchors' SfM's axes)", choices=["sfm", "rounds"])
 
     def __post_init__(self):
         if self.start == "rounds" and self.frame != "rounds":
@@ -54,20 +54,23 @@ OUTPUTS = (artifacts.POSES, artifacts.MODEL, artifacts.ROUND_META)
 
 
 def field_frame(result: dict, views, ids: np.ndarray, anchors_p, axes: str = "sfm") -> np.ndarray:
-    """4x4 similarity from the rounds' frame to the field's: the anchors' gauge y = s (x - c)
+    """4x4 similarity from the rounds' frame to the field's. ``axes = sfm`` where the last round placed its
+    views from the matches' SfM over them: that SfM's own gauge (the anchors' gauge fitted to its points,
+    the round's ``round_from_sfm`` undone), the frame of NeuS on `sfm-all`'s poses: over every view it is
+    sfm-all's SfM, so where the round kept none of its views' updates the field trains on sfm-all's poses
+    to the bit. Otherwise (or ``axes = rounds``) the same gauge y = s (x - c)
     (:func:`manifoldneus.geometry.cameras.gauge_from_points`) fitted to the last round's tracks over every posed
-    view, as the anchors pick theirs: with masks those most of whose observations fall inside the masks
-    (those most views holding them see inside their masks also keep what lies behind the object, e.g. the
-    table: scan65's object shrank 0.77x), without masks those in the views' common frustum; identity where
-    the round kept too few tracks. The gauge's box is axis-aligned, so its axes shape the grid:
-    ``axes = sfm`` fits it in the world frame of the SfM the last round's views came from (the round's
-    ``round_from_sfm``; sfm-all's frame when the last round restarts from it), ``rounds`` in the rounds'.
-    Turned onto the points' principal axes instead (the tightest box), scan65_idr's surface lost 0.3 dB."""
+    view in the rounds' axes, on the points the anchors would pick: with masks those most of whose observations
+    fall inside the masks (those most views holding them see inside their masks also keep what lies behind
+    the object, e.g. the table: scan65's object shrank 0.77x), without masks those in the views' common
+    frustum; identity where the round kept too few tracks. Turned onto the points' principal axes instead
+    (the tightest box), scan65_idr's surface lost 0.3 dB."""
+    round_from_sfm = result["info"].get("round_from_sfm") if axes == "sfm" else None
+    if round_from_sfm is not None:
+        return np.linalg.inv(np.asarray(round_from_sfm, np.float64))
     points = result.get("track_points")
     if points is None or len(points) < 20:
         return np.eye(4)
-    round_from_sfm = result["info"].get("round_from_sfm") if axes == "sfm" else None
-    to_axes = np.eye(4) if round_from_sfm is None else np.linalg.inv(np.asarray(round_from_sfm, np.float64))
     K, w2c = views.K[ids], result["w2c"][ids]
     if views.masks is not None:
         view, point, uv = result["track_obs_view"], result["track_obs_point"], result["track_obs_uv"]
@@ -77,9 +80,9 @@ def field_frame(result: dict, views, ids: np.ndarray, anchors_p, axes: str = "sf
     else:
         sizes = views.view_sizes[ids]
         obj = object_region.seen_fraction(points, K, w2c, sizes) >= anchors_p.object_min_seen
-    fitted = cameras.transform_points(to_axes, points[obj] if obj.sum() >= 20 else points)  # [P,3]
+    fitted = points[obj] if obj.sum() >= 20 else points  # [P,3]
     s, c = cameras.gauge_from_points(fitted, anchors_p.gauge_radius, anchors_p.gauge_percentile, anchors_p.gauge_centre)
-    return cameras.sim3_matrix(s, np.eye(3), -s * c) @ to_axes
+    return cameras.sim3_matrix(s, np.eye(3), -s * c)
 
 
 def run(ctx) -> None:
