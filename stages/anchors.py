@@ -412,6 +412,14 @@ def run(ctx) -> None:
         init_info["perturbed"] = {"rot_deg": list(p.perturb_rot_deg), "centre_frac": p.perturb_centre_frac}
         ctx.log.info("anchors: initial poses perturbed by %s deg and %g of their distance (anchors.perturb_*)",
                      p.perturb_rot_deg, p.perturb_centre_frac)
+    if not p.optimise_poses:  # poses held (sfm-all, neus-colmap): a view the SfM did not register has no pose to train on
+        no_pose = set(init_info.get("unplaced", [])) | set(init_info.get("unregistered", []))
+        if no_pose:
+            ctx.log.warning("anchors: with poses held (anchors.optimise_poses = false) %s, which the initialisation "
+                            "could not place, are left out instead", sorted(no_pose))
+            anchors = [a for a in anchors if inputs.names[a] not in no_pose]
+            if len(anchors) < 2:
+                raise RuntimeError(f"the initialisation placed {len(anchors)} view(s); poses held, nothing to train on")
     placed = np.zeros(n, bool)
     placed[anchors] = True
     lens = {} if inputs.distortion is None else {"distortion": inputs.distortion}
