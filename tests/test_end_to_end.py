@@ -151,16 +151,14 @@ def test_the_surface_is_a_field_of_every_posed_view_at_its_final_pose(tiny_run):
     assert np.allclose(from_sfm, np.eye(4), atol=1e-12) and not np.allclose(G[:3, :3], np.eye(3), atol=1e-3)
     # without that SfM (surface.axes = rounds, or a last round placed by depth): the same gauge refitted to
     # the round's tracks of the object, in the rounds' axes
-    from manifoldneus.data import artifacts as names
     from stages import anchors, surface as surface_stage
 
-    result = names.load_round(final)
-    views = names.load_views(versions["ingest"], None, result["K"])
-    refit = surface_stage.field_frame(result, views, np.flatnonzero(last["optimised"]), anchors.Params(), "rounds")
+    field = evaluation.load_surface_field(surface, versions["ingest"])  # the last round's poses and tracks, its views
+    refit = surface_stage.field_frame(field.result, field.views, field.ids, anchors.Params(), "rounds")
     lo, hi = np.percentile(cameras.transform_points(refit, points), [1, 99], axis=0)
     assert np.allclose(refit[:3, :3] / refit[0, 0], np.eye(3)) and 0.7 < 0.5 * np.linalg.norm(hi - lo) < 0.9
     vertices = np.asarray(trimesh.load(versions["mesh"] / "mesh.ply", process=False).vertices)  # the rounds' frame
-    sdf = evaluation.load_surface_field(surface, versions["ingest"]).trainer.sdf_fn()
+    sdf = field.trainer.sdf_fn()
     on_surface = np.abs(sdf(cameras.transform_points(G, vertices)))  # [V] the field's zero level, in its frame
     assert np.median(on_surface) < 0.1 * np.median(np.abs(sdf(vertices)))
     with pytest.raises(ParamError, match="surface.frame = rounds"):
