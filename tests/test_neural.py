@@ -515,8 +515,8 @@ def test_band_weights_interface():
 
 
 def test_each_kernel_source_builds_in_its_own_folder(tmp_path, monkeypatch):
-    """Two checkouts with different kernel sources on one machine (a worktree of older code measured
-    beside the current one) must not share, and fight over, one build folder."""
+    """Two checkouts on one machine (a worktree of older code measured beside the current one), with
+    different kernel sources or the same one, must not share, and fight over, one build folder."""
     from manifoldneus.neural import grid_encoding
 
     here = grid_encoding._build_dir()
@@ -525,6 +525,11 @@ def test_each_kernel_source_builds_in_its_own_folder(tmp_path, monkeypatch):
     monkeypatch.setattr(grid_encoding, "_SOURCE", edited)
     there = grid_encoding._build_dir()
     assert there != here and there.parent == here.parent
+    same = tmp_path / "checkout" / "grid_encoding.cpp"  # the same bytes in another checkout
+    same.parent.mkdir()
+    same.write_bytes(grid_encoding._SOURCE.read_bytes())
+    monkeypatch.setattr(grid_encoding, "_SOURCE", same)
+    assert grid_encoding._build_dir() not in (here, there)
     monkeypatch.setattr(grid_encoding, "_SOURCE", Path(grid_encoding.__file__).parent / "csrc" / "grid_encoding.cpp")
     assert grid_encoding._build_dir() == here
 

@@ -46,9 +46,10 @@ _ext_error: str | None = None
 
 
 def _build_dir() -> Path:
-    # one folder per torch version and source: two checkouts of different code on one machine (a
-    # worktree measured beside the main one) each keep their own build
-    digest = hashlib.sha256(_SOURCE.read_bytes()).hexdigest()[:10]
+    # one folder per torch version, source and checkout: torch's build file names the source's path, so two
+    # checkouts on one machine (a worktree beside the main one) sharing a folder rebuilt it (40 s) each time
+    # the other had loaded it
+    digest = hashlib.sha256(_SOURCE.read_bytes() + str(_SOURCE.resolve()).encode()).hexdigest()[:10]
     return io.cache_root() / f"grid_encoding-torch{torch.__version__.replace('+', '_')}-{digest}"
 
 
