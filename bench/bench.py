@@ -328,18 +328,20 @@ def write_report(path: Path, result: dict, table: str) -> None:
     print(f"\nwrote {path}")
 
 
-def resolved_params(overrides=(), params_path: Path | None = None) -> dict:
-    """{preset (``default`` for none): {"section.key": value}}: what every system of the bench resolves
-    its parameters to (the fast profile, params.yaml, the bench's overrides). README compares it with
-    what the checkout resolves to now (``bench/results_md.py``), so figures measured with other
-    defaults are not shown as today's."""
+def resolved_params(overrides=(), params_path: Path | None = None, presets=None) -> dict:
+    """{preset (``default`` for none): {"section.key": value}}: what every system of the bench (or the
+    ``presets`` named, ``default`` for none) resolves its parameters to (the fast profile, params.yaml, the
+    bench's overrides). README compares it with what the checkout resolves to now
+    (``bench/results_md.py``), so figures measured with other defaults are not shown as today's."""
     from runner.params import read_params_file, resolve_params
 
     stages = runner.load_stages()
     params_path = params_path or runner.DEFAULT_PARAMS
     out = {}
     defined = {None, *(read_params_file(params_path).get("presets") or {})}
-    for preset in dict.fromkeys(s.preset for s in SYSTEMS.values() if s.preset in defined):  # an older file may lack one
+    wanted = dict.fromkeys(s.preset for s in SYSTEMS.values()) if presets is None else \
+        [None if p == "default" else p for p in presets]
+    for preset in (p for p in wanted if p in defined):  # an older file may lack one
         resolved = resolve_params(stages, params_path, list(overrides), preset=preset)
         out[preset or "default"] = {f"{section}.{k}": v for section, values in resolved.items()
                                     if dataclasses.is_dataclass(values) for k, v in dataclasses.asdict(values).items()}

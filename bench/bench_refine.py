@@ -36,6 +36,7 @@ from manifoldneus.data import io
 
 ROOT = Path(__file__).resolve().parent.parent
 
+PRESETS = ("default", "sfm-all")  # what its runs resolve their parameters with (README's staleness check)
 TIMED = ("ingest", "features", "matching", "covisibility", "spectral", "schedule", "reference", "anchors",
          "successors", "surface", "mesh", "reference_surface", "evaluate")
 
@@ -276,7 +277,7 @@ def main(argv=None) -> int:
     ref_seeds = {int(s) for s in args.reference_seeds.split(",")} if args.reference_seeds else set(seeds)
     result = {"label": args.label, "date": dt.datetime.now().isoformat(timespec="seconds"),
               "commit": git_commit(), "machine": bench.machine(), "overrides": args.overrides,
-              "resolved_params": bench.resolved_params(args.overrides),
+              "resolved_params": bench.resolved_params(args.overrides, presets=PRESETS),
               "scenes": {}}
     path = args.out_dir / "refine" / f"{args.label}-{dt.date.today().isoformat()}.json"
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 
 from bench import bench
+from manifoldneus.output import evaluation
 
 BEGIN = "<!-- results:begin -->"
 END = "<!-- results:end -->"
@@ -105,16 +106,20 @@ def resolved_now(overrides: tuple) -> dict:
     return json.loads(json.dumps(bench.resolved_params(overrides)))
 
 
-def changed_defaults(result: dict) -> list[str]:
+def changed_defaults(result: dict, presets=None) -> list[str]:
     """``section.key`` (with the preset, where only a preset's value changed) of every parameter that
     the bench resolved to one value and the checkout resolves to another now, or that the checkout no
     longer has (``section.key removed``: the behaviour it set has changed): its figures are not what the
-    same command gives today. A key only the checkout has is left out (a new parameter's default keeps
-    the old behaviour); a JSON without the record (older benches) counts as unchanged."""
+    same command gives today. Only the ``presets`` its runs used count (None: every one it recorded), and
+    of each only the keys its runs read: the crop to the object's keys not where masks leave the surface
+    uncropped (the bench's scenes have masks). A key only the checkout has is left out (a new parameter's
+    default keeps the old behaviour); a JSON without the record (older benches) counts as unchanged."""
     then = result.get("resolved_params")
     if not then:
         return []
     now = resolved_now(tuple(result.get("overrides", ())))
+    then = {preset: {k: v for k, v in values.items() if read_by_runs(values, k)} for preset, values in then.items()
+            if presets is None or preset in presets}
     changed = [(preset, k) for preset, values in then.items() for k, v in values.items()
                if preset in now and now[preset].get(k, v) != v]
     removed = [(preset, k) for preset, values in then.items() for k in values if preset in now and k not in now[preset]]
@@ -123,9 +128,18 @@ def changed_defaults(result: dict) -> list[str]:
                                *(f"{k} removed" for _, k in removed)]))
 
 
-def stale_note(result: dict, what: str) -> str:
+def read_by_runs(values: dict, key: str) -> bool:
+    """Whether runs resolving their parameters to ``values`` ({"section.key": value}) read ``key``."""
+    section, _, name = key.partition(".")
+    if section == "meshing" and name in evaluation.CROP_KEYS:
+        return evaluation.crops_to_object(values.get("meshing.crop_to_object", "auto"),
+                                          bool(values.get("ingest.load_masks", True)))
+    return True
+
+
+def stale_note(result: dict, what: str, presets=None) -> str:
     """A sentence saying that ``what`` was measured with other defaults, naming them; "" when it was not."""
-    changed = changed_defaults(result)
+    changed = changed_defaults(result, presets)
     if not changed:
         return ""
     return (f"{what} was measured with other defaults than the checkout's ({', '.join(changed)}), so its figures "
@@ -153,6 +167,7 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
     refine = refine_files(bench_dir)
     if not refine:
         return f"{GENERATED_BY}\nNo refinement bench yet: `make bench-refine` measures one."
+    from bench import bench_refine
     from bench.bench_refine import pm
 
     result = json.loads(refine[-1].read_text())
@@ -178,7 +193,7 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
             f"{pm(s['final_rot_deg'], '.3f')} deg, against {against}"
             + (f"; held-out masked PSNR {pm(psnr, '.2f')} dB{upper}" if psnr.get("mean") is not None else "")
             + ". All figures: [Current results](#current-results)."
-            + (f" ({stale}.)" if (stale := stale_note(result, "This bench")) else ""))
+            + (f" ({stale}.)" if (stale := stale_note(result, "This bench", bench_refine.PRESETS)) else ""))
 
 
 def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
@@ -224,7 +239,7 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
 
         result, missing = with_missing_summaries(json.loads(refine[-1].read_text()))
         m = result["machine"]
-        stale = stale_note(result, "This bench")
+        stale = stale_note(result, "This bench", bench_refine.PRESETS)
         if stale:
             parts += ["### Refinement (`make bench-refine`: mean ± std over seeds)",
                       f"`{rel(refine[-1], root)}`: {stale}; `make bench-refine` measures it again."]

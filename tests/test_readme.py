@@ -196,3 +196,25 @@ def test_the_project_speaks_of_itself_by_date():
             text = (ROOT / f).read_text(errors="replace")
             bad += [f"{f}:{text.count(chr(10), 0, m.start()) + 1}: {m.group(0)}" for m in banned.finditer(text)]
     assert not bad, "\n".join(bad[:20])
+
+
+def test_a_default_no_run_of_a_bench_reads_leaves_its_figures_shown():
+    """The crop to the object's keys are read only where the surface is cropped (no masks): changed, they
+    stale the photos-alone runs of a bench, not its masked ones; and only the presets a bench ran count."""
+    import json
+
+    from bench import bench_refine
+    from manifoldneus.output import evaluation
+
+    then = {"resolved_params": json.loads(json.dumps(bench.resolved_params()))}
+    assert then["resolved_params"]["default"]["ingest.load_masks"] and not then["resolved_params"]["photos-alone"][
+        "ingest.load_masks"]
+    for preset in then["resolved_params"].values():
+        preset["meshing.silhouette_dilation"] += 1.0
+    assert "silhouette_dilation" in evaluation.CROP_KEYS
+    assert results_md.changed_defaults(then) == ["meshing.silhouette_dilation (photos-alone)"]
+    assert results_md.changed_defaults(then, bench_refine.PRESETS) == []
+    assert set(bench.resolved_params(presets=bench_refine.PRESETS)) == set(bench_refine.PRESETS)
+    # a masked run told to crop reads them
+    then["resolved_params"]["default"]["meshing.crop_to_object"] = "on"
+    assert "meshing.silhouette_dilation" in results_md.changed_defaults(then, bench_refine.PRESETS)

@@ -138,6 +138,15 @@ def field_vertex_colours(trainer: Trainer, vertices: np.ndarray, normals: np.nda
     return out
 
 
+# the keys only a surface cropped to the object reads: a change to them leaves masked runs' meshes as they were
+CROP_KEYS = ("support", "support_margin", "silhouette_vote", "silhouette_dilation")
+
+
+def crops_to_object(crop_to_object: str, masked: bool) -> bool:
+    """Whether the mesh is cropped to the object's region (``meshing.crop_to_object``; auto: without masks)."""
+    return crop_to_object == "on" or (crop_to_object == "auto" and not masked)
+
+
 def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=None, region=None,
               object_points=None, sizes=None):
     """Mesh of the trainer's SDF; culled by the given views' dilated masks, to the surface they
@@ -153,8 +162,7 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
             np.asarray(mesh.vertices), trainer.rp.radius, p.resolution)), True
     # the crop's keys are read only where there is something to crop to: a caller without a region
     # (the GT-pose reference) need not declare them, so they do not enter its fingerprint
-    crop = (region is not None or object_points is not None) and (
-        p.crop_to_object == "on" or (p.crop_to_object == "auto" and masks is None))
+    crop = (region is not None or object_points is not None) and crops_to_object(p.crop_to_object, masks is not None)
     unseen = p.cull_unseen and K is not None and hw is not None
     if unseen and crop and len(mesh.faces):
         # what the views see is decided on the whole surface the field has: cropped first, the background and
