@@ -69,6 +69,7 @@ TINY = [
     "meshing.resolution=48", "evaluate.chamfer_points=4000", "schedule.successors_per_round=4",
     "novel_views.align_steps=40", "novel_views.align_rays=256",
     "successors.polish_steps=20", "successors.polish_rays=256",
+    "run.threads=1",  # `make test` runs two workers on two cores: two torch threads each would oversubscribe them
 ]
 
 

@@ -892,7 +892,7 @@ def test_a_stage_declaring_one_key_of_a_section_is_not_rerun_by_the_others(tmp_p
     stages = runner.load_stages()
     assert stages["mesh"].keys_read()["run"] == {"device"} and stages["anchors"].keys_read()["run"] is None
     base = runner.resolve_params(stages, overrides=TINY)
-    other = runner.resolve_params(stages, overrides=[*TINY, "run.threads=1"])
+    other = runner.resolve_params(stages, overrides=[*TINY, f"run.threads={base['run'].threads + 1}"])
     scene = runner.resolve_scene("synthetic")
     own_base, own_other = (runner.own_ingredients(stages, r, scene) for r in (base, other))
     changed = {name for name in stages if own_base[name]["params"] != own_other[name]["params"]}
