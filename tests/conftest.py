@@ -73,12 +73,11 @@ TINY = [
 ]
 
 
-# The longest test files, longest first (seconds of a whole run, `--durations=0` on 2026-11-27: 162, 151, 139,
-# 84, 79, 74, 66, 56, 48, 47), run first: `make test` hands whole files to its two workers in collection order,
-# and a long file handed out last keeps one core busy after the other has finished.
-LONGEST_FIRST = ("test_bench.py", "test_self_calibration.py", "test_end_to_end.py", "test_executor.py", "test_sweep.py",
-                 "test_reproducible.py", "test_pipeline.py", "test_bench_own_photos.py", "test_bench_refine.py",
-                 "test_gpu_step.py")
+# The longest test files (seconds of a whole run, 2026-11-25), run first: `make test` hands whole files
+# to its two workers in collection order, and a long file handed out last keeps one core busy after
+# the other has finished.
+LONGEST_FIRST = ("test_pipeline.py", "test_executor.py", "test_sweep.py", "test_self_calibration.py",
+                 "test_reproducible.py", "test_bench.py", "test_end_to_end.py", "test_ingest.py")
 
 
 def pytest_collection_modifyitems(config, items):
