@@ -167,8 +167,7 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
     refine = refine_files(bench_dir)
     if not refine:
         return f"{GENERATED_BY}\nNo refinement bench yet: `make bench-refine` measures one."
-    from bench import bench_refine
-    from bench.bench_refine import pm
+    from bench.bench_refine import PRESETS, pm
 
     result = json.loads(refine[-1].read_text())
     if not result["scenes"]:
@@ -193,7 +192,7 @@ def headline_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
             f"{pm(s['final_rot_deg'], '.3f')} deg, against {against}"
             + (f"; held-out masked PSNR {pm(psnr, '.2f')} dB{upper}" if psnr.get("mean") is not None else "")
             + ". All figures: [Current results](#current-results)."
-            + (f" ({stale}.)" if (stale := stale_note(result, "This bench", bench_refine.PRESETS)) else ""))
+            + (f" ({stale}.)" if (stale := stale_note(result, "This bench", PRESETS)) else ""))
 
 
 def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
