@@ -67,10 +67,12 @@ TINY = [
     "anchors.iters=40", "successors.iters=30", "successors.final_iters=40", "surface.iters=40",
     "field.grid_levels=3", "field.grid_max_res=32", "render.cache_res=32",
     "meshing.resolution=48", "evaluate.chamfer_points=4000", "schedule.successors_per_round=4",
-    "novel_views.align_steps=40", "novel_views.align_rays=256",
+    "novel_views.align_steps=10", "novel_views.align_rays=256",
     "successors.polish_steps=20", "successors.polish_rays=256",
     "run.threads=1",  # `make test` runs two workers on two cores: two torch threads each would oversubscribe them
 ]
+# TINY's successors placed in one round, not three: for the tests that read nothing of the rounds
+ONE_SUCCESSOR_ROUND = "schedule.successors_per_round=20"
 
 
 # The longest test files (seconds of a whole run, 2026-11-25), run first: `make test` hands whole files
@@ -86,15 +88,50 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture(scope="session")
-def tiny_run(tmp_path_factory):
-    """(artifacts folder, run report) of one TINY run, shared by the test modules. Tests that run
-    other parameters into it move some stages' `current` pointers: read a result through
-    `Store.lineage` of its last stage, which names the versions it was computed from."""
+def tiny_build(tmp_path_factory):
+    """(artifacts folder, run report) of one TINY run, built once per test session: the first worker to ask
+    builds it, another waits for it. Never written to: tests take copies (tiny_run, tiny_copy)."""
+    import json
+
+    import filelock
+
     import runner
 
-    artifacts = tmp_path_factory.mktemp("e2e") / "artifacts"
-    report = runner.run("synthetic", overrides=TINY, artifacts=artifacts)
-    return artifacts, report
+    base = tmp_path_factory.getbasetemp()
+    # under xdist each worker's base folder lies in the session's own: build there, once for all of them
+    shared = (base.parent if "PYTEST_XDIST_WORKER" in os.environ else base) / "tiny_run"
+    shared.mkdir(exist_ok=True)
+    with filelock.FileLock(str(shared) + ".lock"):
+        if not (shared / "report.json").is_file():
+            built = runner.run("synthetic", overrides=TINY, artifacts=shared / "artifacts")
+            (shared / "report.json").write_text(json.dumps({"stages": built, "fingerprints": built.fingerprints}))
+    saved = json.loads((shared / "report.json").read_text())
+    report = runner.RunReport()
+    report.update(saved["stages"])
+    report.fingerprints.update(saved["fingerprints"])
+    return shared / "artifacts", report
+
+
+def copy_of(artifacts: Path, to: Path) -> Path:
+    import shutil
+
+    shutil.copytree(artifacts, to, symlinks=True)  # the `current` pointers are relative links
+    return to
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tiny_build, tmp_path_factory):
+    """(artifacts folder, run report) of the TINY run, this worker's copy, shared by the test modules. Tests
+    that run other parameters into it move some stages' `current` pointers: read a result through
+    `Store.lineage` of its last stage, which names the versions it was computed from."""
+    return copy_of(tiny_build[0], tmp_path_factory.mktemp("e2e") / "artifacts"), tiny_build[1]
+
+
+@pytest.fixture
+def tiny_copy(tiny_build, tmp_path):
+    """An artifacts folder of the test's own holding every stage of the TINY run: a run of TINY's parameters
+    into it reuses them."""
+    return copy_of(tiny_build[0], tmp_path / "tiny_artifacts")
 
 
 @pytest.fixture(scope="session")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_end_to_end import TINY
+from conftest import ONE_SUCCESSOR_ROUND, TINY
 
 from bench import bench, match_precision, pose_observability, results_md
 from manifoldneus.data import synthetic
@@ -28,7 +28,7 @@ def tiny_bench(tmp_path_factory):
     """(output dir, printed text) of `bench.py` on the tiny scene with every system, seeds 0 and 1."""
     tmp = tmp_path_factory.mktemp("bench")
     argv = ["--scene", "synthetic", "--seeds", "0,1", "--artifacts", str(tmp / "artifacts"), "--out-dir", str(tmp / "out")]
-    argv += [arg for override in TINY for arg in ("--set", override)]
+    argv += [arg for override in (*TINY, ONE_SUCCESSOR_ROUND) for arg in ("--set", override)]
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
         assert bench.main(argv) == 0

@@ -10,9 +10,9 @@ from bench import bench_own_photos
 from tests.conftest import TINY
 
 
-def test_own_photos_bench_scores_both_systems_against_one_ground_truth(tmp_path, capsys):
+def test_own_photos_bench_scores_both_systems_against_one_ground_truth(tmp_path, tiny_copy, capsys):
     over = [f"--set={o}" for o in TINY]
-    art, out = str(tmp_path / "art"), str(tmp_path / "bench")
+    art, out = str(tiny_copy), str(tmp_path / "bench")  # the calibrated run: the TINY run's stages
     assert bench_own_photos.main(["--scene", "synthetic", "--seeds", "0", *over, "--artifacts", art, "--out-dir", out,
                                   "--label", "tiny"]) == 0
     (path,) = (tmp_path / "bench" / "own_photos").glob("tiny-*.json")

@@ -9,10 +9,11 @@ from bench import bench_refine
 from tests.test_end_to_end import TINY
 
 
-def test_refinement_bench_two_seeds(tmp_path, capsys):
+def test_refinement_bench_two_seeds(tmp_path, tiny_copy, capsys):
+    # seed 0's method run is the TINY run: its stages are reused
     over = [f"--set={o}" for o in TINY]
     assert bench_refine.main(["--scenes", "synthetic", "--seeds", "0,1", "--reference-seeds", "0", "--gt-pose", *over,
-                              "--artifacts", str(tmp_path / "art"), "--out-dir", str(tmp_path / "bench"),
+                              "--artifacts", str(tiny_copy), "--out-dir", str(tmp_path / "bench"),
                               "--label", "tiny"]) == 0
     printed = capsys.readouterr().out
     (path,) = (tmp_path / "bench" / "refine").glob("tiny-*.json")

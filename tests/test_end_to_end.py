@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import TINY
+from conftest import ONE_SUCCESSOR_ROUND, TINY
 
 import runner
 import trimesh
@@ -318,7 +318,7 @@ def test_a_video_of_an_object_comes_out_with_every_frame_posed(tmp_path):
     for image in scene.images:
         writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     writer.release()
-    overrides = [o for o in TINY if not o.startswith("ingest.synthetic")] + [f"ingest.video_frames={n}"]
+    overrides = [o for o in TINY if not o.startswith("ingest.synthetic")] + [ONE_SUCCESSOR_ROUND, f"ingest.video_frames={n}"]
     runner.run(str(clip), overrides=overrides, artifacts=tmp_path / "artifacts")
     store = runner.Store(tmp_path / "artifacts", runner.resolve_scene(str(clip)).name)
     out = store.version_dir("export", store.current("export"))
@@ -349,7 +349,7 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
             exif[0x0112] = 3 if i == 4 else 1  # IMG_0004 asks viewers to turn it upside down
             Image.fromarray(image).save(photos / f"IMG_{i:04d}.jpg", quality=95, exif=exif)
     artifacts = tmp_path / "artifacts"
-    report = runner.run(str(photos), overrides=TINY, artifacts=artifacts)
+    report = runner.run(str(photos), overrides=[*TINY, ONE_SUCCESSOR_ROUND], artifacts=artifacts)
     assert report["evaluate"] == "computed" and report["export"] == "computed"
     name = runner.resolve_scene(str(photos)).name
     ev = io.load_json(artifacts / name / "evaluate" / report.fingerprints["evaluate"] / "evaluation.json")
@@ -378,11 +378,11 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     reference = store.version_dir("reference", report.fingerprints["reference"])
     assert io.load_json(reference / "manifest.json")["metrics"]["skipped"] is True
     assert not io.load_arrays(reference / "poses.zarr", ["registered"])["registered"].any()
-    st = runner.status(str(photos), overrides=[*TINY, "reference.when=always"], artifacts=artifacts)
+    st = runner.status(str(photos), overrides=[*TINY, ONE_SUCCESSOR_ROUND, "reference.when=always"], artifacts=artifacts)
     assert st["reference"][0] != "fresh" and st["anchors"][0] == "fresh"  # the method never read it
     with pytest.raises(ParamError, match="reference.when=always"):  # the anchors cannot start from a skipped one
-        runner.run(str(photos), until="anchors", overrides=[*TINY, "anchors.pose_init=reference"],
-                     artifacts=artifacts)
+        runner.run(str(photos), until="anchors", overrides=[*TINY, ONE_SUCCESSOR_ROUND, "anchors.pose_init=reference"],
+                   artifacts=artifacts)
 
 
 def test_the_summary_of_a_run_too_small_to_score_still_ends_well(tiny_run, monkeypatch):
@@ -475,7 +475,7 @@ def test_photos_of_two_sizes_are_two_cameras_end_to_end(tmp_path):
     assert len(pycolmap.Reconstruction(str(folder / "sparse" / "0")).cameras) == 2
     artifacts = tmp_path / "artifacts"
     # export and evaluate, not pycolmap's reference: its scores are not this test's
-    overrides = TINY + ["ingest.use_calibration=false"]
+    overrides = TINY + [ONE_SUCCESSOR_ROUND, "ingest.use_calibration=false"]
     report = {until: runner.run(str(folder), until=until, artifacts=artifacts, overrides=overrides).fingerprints[until]
               for until in ("export", "evaluate")}
     store = runner.Store(artifacts, runner.resolve_scene(str(folder)).name)

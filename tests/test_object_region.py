@@ -15,7 +15,7 @@ from manifoldneus.data import artifacts, io, synthetic
 from manifoldneus.geometry import cameras, object_region, pose_metrics
 from manifoldneus.output import meshing
 from stages import mesh as mesh_stage
-from tests.conftest import TINY
+from tests.conftest import ONE_SUCCESSOR_ROUND, TINY
 
 N_VIEWS = 20
 
@@ -144,7 +144,8 @@ def _final_round_points(store):
 def on_a_floor(tmp_path_factory):
     root = tmp_path_factory.mktemp("floor")
     runner.run("synthetic", until="mesh", artifacts=root, overrides=[
-        *TINY, "ingest.synthetic_floor=true", "ingest.load_masks=false", "reference_surface.enabled=false"])
+        *TINY, ONE_SUCCESSOR_ROUND, "ingest.synthetic_floor=true", "ingest.load_masks=false",
+        "reference_surface.enabled=false"])
     return runner.Store(root, "synthetic")
 
 

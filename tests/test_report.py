@@ -7,7 +7,8 @@ import re
 
 import numpy as np
 import pytest
-from test_end_to_end import TINY, current
+from conftest import TINY, copy_of
+from test_end_to_end import current
 
 import runner
 import pipeline
@@ -28,16 +29,11 @@ def test_overlap_groups_and_top_p_share_by_hand():
     assert shares[0] == pytest.approx(0.05) and np.isnan(shares[1])
 
 
-# Only for speed: two successor rounds instead of four (still more than one to lay end to end),
-# and no GT-pose reference surface (the synthetic scene's Chamfer uses its exact surface).
-FASTER = TINY + ["schedule.successors_per_round=8", "reference_surface.enabled=false"]
-
 
 @pytest.fixture(scope="module")
-def built_report(tmp_path_factory):
-    artifacts = tmp_path_factory.mktemp("report") / "artifacts"
-    runner.run("synthetic", overrides=FASTER, artifacts=artifacts)
-    runner.run("synthetic", overrides=FASTER, preset="neus-barf", artifacts=artifacts)
+def built_report(tiny_build, tmp_path_factory):
+    artifacts = copy_of(tiny_build[0], tmp_path_factory.mktemp("report") / "artifacts")  # the method's TINY run
+    runner.run("synthetic", overrides=TINY, preset="neus-barf", artifacts=artifacts)
     out = artifacts.parent / "report"
     page = report.build_report("synthetic", artifacts, out)
     return artifacts, page

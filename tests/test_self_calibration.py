@@ -11,11 +11,12 @@ import pytest
 import runner
 from manifoldneus.geometry import cameras
 from manifoldneus.data import io, scenes, synthetic
-from tests.test_end_to_end import TINY
+from tests.conftest import ONE_SUCCESSOR_ROUND, TINY
 
 RES = 256  # the focal length is weakly determined at this narrow field of view: 192 px keypoints leave it 2.2 % off
 F_TRUE = synthetic.FOCAL_FACTOR * RES
-UNMASKED = [*TINY, f"ingest.synthetic_resolution={RES}", "ingest.load_masks=false", "reference_surface.enabled=false"]
+UNMASKED = [*TINY, ONE_SUCCESSOR_ROUND, f"ingest.synthetic_resolution={RES}", "ingest.load_masks=false",
+            "reference_surface.enabled=false"]
 OFF = [f"ingest.intrinsics=[{0.7 * F_TRUE}, {0.7 * F_TRUE}, {RES / 2}, {RES / 2}]"]  # 30 % short
 METHOD = ["evaluate", "export"]  # the method's stages, not pycolmap's reference beside them
 
