@@ -89,7 +89,7 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session")
 def tiny_build(tmp_path_factory):
-    """(artifacts folder, run report) of one TINY run, built once per test session: the first worker to ask
+    """(artifacts folder, run report) of one TINY run, built once per pytest run: the first worker to ask
     builds it, another waits for it. Never written to: tests take copies (tiny_run, tiny_copy)."""
     import json
 
@@ -98,7 +98,7 @@ def tiny_build(tmp_path_factory):
     import runner
 
     base = tmp_path_factory.getbasetemp()
-    # under xdist each worker's base folder lies in the session's own: build there, once for all of them
+    # under xdist each worker's base folder lies in the pytest run's own: build there, once for all of them
     shared = (base.parent if "PYTEST_XDIST_WORKER" in os.environ else base) / "tiny_run"
     shared.mkdir(exist_ok=True)
     with filelock.FileLock(str(shared) + ".lock"):

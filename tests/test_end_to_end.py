@@ -318,7 +318,8 @@ def test_a_video_of_an_object_comes_out_with_every_frame_posed(tmp_path):
     for image in scene.images:
         writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     writer.release()
-    overrides = [o for o in TINY if not o.startswith("ingest.synthetic")] + [ONE_SUCCESSOR_ROUND, f"ingest.video_frames={n}"]
+    overrides = [*(o for o in TINY if not o.startswith("ingest.synthetic")), ONE_SUCCESSOR_ROUND,
+                 f"ingest.video_frames={n}"]
     runner.run(str(clip), overrides=overrides, artifacts=tmp_path / "artifacts")
     store = runner.Store(tmp_path / "artifacts", runner.resolve_scene(str(clip)).name)
     out = store.version_dir("export", store.current("export"))
@@ -378,7 +379,8 @@ def test_own_photos_end_to_end_say_the_camera_they_estimated(tmp_path):
     reference = store.version_dir("reference", report.fingerprints["reference"])
     assert io.load_json(reference / "manifest.json")["metrics"]["skipped"] is True
     assert not io.load_arrays(reference / "poses.zarr", ["registered"])["registered"].any()
-    st = runner.status(str(photos), overrides=[*TINY, ONE_SUCCESSOR_ROUND, "reference.when=always"], artifacts=artifacts)
+    st = runner.status(str(photos), overrides=[*TINY, ONE_SUCCESSOR_ROUND, "reference.when=always"],
+                       artifacts=artifacts)
     assert st["reference"][0] != "fresh" and st["anchors"][0] == "fresh"  # the method never read it
     with pytest.raises(ParamError, match="reference.when=always"):  # the anchors cannot start from a skipped one
         runner.run(str(photos), until="anchors", overrides=[*TINY, ONE_SUCCESSOR_ROUND, "anchors.pose_init=reference"],

@@ -29,7 +29,6 @@ def test_overlap_groups_and_top_p_share_by_hand():
     assert shares[0] == pytest.approx(0.05) and np.isnan(shares[1])
 
 
-
 @pytest.fixture(scope="module")
 def built_report(tiny_build, tmp_path_factory):
     artifacts = copy_of(tiny_build[0], tmp_path_factory.mktemp("report") / "artifacts")  # the method's TINY run
