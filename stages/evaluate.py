@@ -6,6 +6,9 @@
 - Geometry: Chamfer of the final mesh (mapped into the GT frame by the final Sim3) against the
   exact surface (synthetic scenes: the observed part of it), or else against the mesh of the
   GT-pose `reference_surface`, labelled so. Distances in scene units and in data units (mm).
+  Beside it, the colour spread of the mesh (and of that reference mesh) across the views at the
+  images' own size under the GT cameras (:mod:`manifoldneus.output.photo_consistency`): a check of
+  where the surface lies that needs no masks and no reference.
 - Novel views: held-out views rendered from the final model with their GT poses mapped into
   the model's frame through the inverse Sim3; PSNR/SSIM masked and unmasked; and again after
   test-time alignment (each held-out pose refined against the frozen field: `aligned_*`).
@@ -21,7 +24,7 @@ import numpy as np
 
 from manifoldneus.data import artifacts, io
 from manifoldneus.geometry import cameras, pose_metrics
-from manifoldneus.output import evaluation, meshing, metrics
+from manifoldneus.output import evaluation, meshing, metrics, photo_consistency
 from manifoldneus.config import holdout_mask, param
 
 
@@ -31,6 +34,9 @@ class Params:
 
     chamfer_points: int = param(100000, "Points sampled on each surface for Chamfer", lo=1000)
     chamfer_max_dist: float = param(0.0, "Clip distances at this many scene units (0 = no clip)", lo=0.0)
+    colour_spread_tolerance: float = param(0.005, "Colour spread: a surface point counts as seen by a view when it "
+                                           "lies within this many scene units (plus two pixels' width) of the "
+                                           "nearest surface along that view's ray (1.2 mm on DTU's scan24)", lo=0.0)
 
 
 UPSTREAM = ("ingest", "ground_truth", "anchors", "successors", "surface", "mesh", "reference_surface")
@@ -113,6 +119,19 @@ def intrinsics_report(ctx, rounds: list[tuple[str, dict]], K_gt: np.ndarray | No
     return out
 
 
+def colour_spreads(mesh, ref_mesh, alignment: dict, gt_views, w2c_gt: np.ndarray, tolerance: float) -> dict:
+    """The colour spread (:func:`manifoldneus.output.photo_consistency.colour_spread`) of the run's mesh, mapped
+    into the GT frame by ``alignment``, and of ``ref_mesh`` (already there) when given."""
+    grey = [photo_consistency.grey_levels(image[:h, :w]) for image, (h, w) in zip(gt_views.images, gt_views.view_sizes)]
+    in_gt = mesh.copy()
+    in_gt.apply_transform(cameras.sim3_matrix(alignment["s"], np.asarray(alignment["R"]), np.asarray(alignment["t"])))
+    out = {"colour_spread": photo_consistency.colour_spread(in_gt, grey, gt_views.K, w2c_gt, depth_tolerance=tolerance)}
+    if ref_mesh is not None:
+        out["reference_colour_spread"] = photo_consistency.colour_spread(ref_mesh, grey, gt_views.K, w2c_gt,
+                                                                         depth_tolerance=tolerance)
+    return out
+
+
 def run(ctx) -> None:
     p: Params = ctx.params
     gt_meta = artifacts.load_gt_meta(ctx.input("ground_truth"))
@@ -174,14 +193,14 @@ def run(ctx) -> None:
     al = final_res["alignment"]
     pred = metrics.sample_surface(mesh, p.chamfer_points) if len(mesh.faces) else np.zeros((0, 3))
     pred = al["s"] * pred @ np.asarray(al["R"]).T + np.asarray(al["t"])
-    ref_label, ref_pts = None, None
+    ref_label, ref_pts, ref_mesh = None, None, None
+    gt_views = artifacts.load_views(ctx.input("ingest"), K=gt.get("K"))  # the images' own size, the GT cameras
     if gt_meta.get("has_surface"):
         from manifoldneus.data import synthetic
 
         surf = gt["surface_points"]
-        views = artifacts.load_views(ctx.input("ingest"), K=gt.get("K"))
-        h, w = views.images.shape[1:3]
-        ref_pts = surf[synthetic.points_visible(surf, views.K, gt["w2c"], h, w)]
+        h, w = gt_views.images.shape[1:3]
+        ref_pts = surf[synthetic.points_visible(surf, gt_views.K, gt["w2c"], h, w)]
         ref_label = "exact surface (observed part)"
         diag = float(np.linalg.norm(np.subtract(*synthetic.bounding_box()[::-1])))
     else:
@@ -196,6 +215,7 @@ def run(ctx) -> None:
         ch_units = {f"{k}_units": v * units for k, v in ch.items()}
         report["geometry"] = {"reference": ref_label, **ch, **ch_units, "units": gt_meta["units"],
                               "chamfer_pct_of_bbox_diagonal": 100 * ch["chamfer"] / diag}
+        report["geometry"].update(colour_spreads(mesh, ref_mesh, al, gt_views, gt["w2c"], p.colour_spread_tolerance))
     # --- novel views of held-out views
     held = np.flatnonzero(holdout_mask(len(names), ctx.section("split")))
     if len(held):

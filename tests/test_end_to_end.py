@@ -53,6 +53,7 @@ def test_rounds_and_evaluation(tiny_run):
     assert labels[:2] == ["initial", "anchors"] and labels[2:] == rounds
     assert ev["poses"][0]["summary"]["rot_err_deg"]["mean"] < 2.0  # matches-based init, before any training
     assert np.isfinite(ev["geometry"]["chamfer"]) and ev["novel_views"]["per_view"]
+    assert 0 < ev["geometry"]["colour_spread"]["median"] < 1 and ev["geometry"]["colour_spread"]["share_scored"] > 0
     for row in ev["novel_views"]["per_view"]:  # scored at the mapped GT pose and after test-time alignment
         assert np.isfinite(row["psnr"]) and np.isfinite(row["aligned_psnr"]) and row["align_rot_deg"] >= 0
     colmap = current(artifacts, "mesh") / "colmap"

@@ -1,0 +1,93 @@
+"""Photo-consistency of a surface: how much the images disagree about the grey level of its points.
+
+A surface in the right place shows every view that sees it the same texture; one a few millimetres
+off reads a different pixel in each view. The colour spread is the standard deviation of the grey level
+over the views that see a point (facing it, inside the frame, not hidden by the surface itself), its
+median taken over points sampled on the surface. It is read at the images' own resolution under the
+ground-truth cameras, so it needs neither masks nor a reference surface: on DTU, where Chamfer is
+measured against a NeuS trained with the masks (``reference_surface``), it also scores that reference.
+A textureless surface gives the same grey at any depth, so it cannot see errors there (a table kept
+around the object scores well): it stands beside Chamfer, never in its place.
+
+Visibility comes from a z-buffer of dense surface samples splatted into each view: no ray caster.
+Frames: ``K`` [N,3,3] and ``w2c`` [N,4,4] OpenCV world-to-camera (:mod:`manifoldneus.geometry.cameras`),
+the mesh in the same world frame.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Grey levels [P] at pixel positions uv [P,2] (pixel centres at integers, inside [0, W-1) x [0, H-1))."""
+    x0, y0 = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+    fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
+    return (image[y0, x0] * (1 - fx) * (1 - fy) + image[y0, x0 + 1] * fx * (1 - fy)
+            + image[y0 + 1, x0] * (1 - fx) * fy + image[y0 + 1, x0 + 1] * fx * fy)
+
+
+def _depth_buffer(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) -> np.ndarray:
+    """[H,W] nearest camera depth of ``points`` [P,3] splatted one pixel each; a pixel no point lands on
+    takes the nearest depth of its 3x3 neighbourhood (inf where none lands there either)."""
+    import cv2
+
+    H, W = hw
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]  # [P,3]
+    z = cam[:, 2]
+    front = z > 1e-9
+    uv = cam[front] @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    flat = uv[inside, 1].astype(int) * W + uv[inside, 0].astype(int)
+    buffer = np.full(H * W, np.inf, np.float32)
+    np.minimum.at(buffer, flat, z[front][inside].astype(np.float32))
+    buffer = buffer.reshape(H, W)
+    return np.where(np.isinf(buffer), cv2.erode(buffer, np.ones((3, 3), np.uint8)), buffer)
+
+
+def colour_spread(mesh, images, K: np.ndarray, w2c: np.ndarray, *, depth_tolerance: float, n_points: int = 50000,
+                  splat_points: int = 2_000_000, min_views: int = 4, min_facing: float = 0.5, seed: int = 0) -> dict:
+    """The colour spread of ``mesh`` (a trimesh) seen by the views ``images`` (N grey images [H,W] in
+    [0,1], sizes may differ), ``K`` [N,3,3] and ``w2c`` [N,4,4]. A point is seen by a view that it faces
+    (cosine above ``min_facing``), whose frame holds it and whose depth buffer it is within
+    ``depth_tolerance`` (scene units) of; points seen by fewer than ``min_views`` views are left out.
+    Returns ``median`` and ``mean`` spread, ``p90``, and ``share_scored`` (the share of the points
+    kept); None where the mesh is empty or no point is seen often enough."""
+    import trimesh
+
+    if mesh is None or len(mesh.faces) == 0:
+        return None
+    dense, _ = trimesh.sample.sample_surface(mesh, splat_points, seed=seed + 1)
+    points, faces = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
+    points, normals = np.asarray(points), np.asarray(mesh.face_normals[faces])  # [P,3] each
+    grey = np.full((len(images), len(points)), np.nan, np.float32)  # [N,P]
+    for i, image in enumerate(images):
+        H, W = image.shape[:2]
+        buffer = _depth_buffer(np.asarray(dense), K[i], w2c[i], (H, W))
+        cam = points @ w2c[i][:3, :3].T + w2c[i][:3, 3]  # [P,3]
+        centre = -w2c[i][:3, :3].T @ w2c[i][:3, 3]
+        to_camera = centre - points
+        facing = np.einsum("pi,pi->p", normals, to_camera) > min_facing * np.linalg.norm(to_camera, axis=1)
+        z = cam[:, 2]
+        uv = cam @ K[i].T
+        uv = uv[:, :2] / np.where(np.abs(uv[:, 2:]) > 1e-12, uv[:, 2:], 1e-12)
+        inside = facing & (z > 1e-9) & (uv[:, 0] >= 0) & (uv[:, 0] < W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < H - 1)
+        idx = np.flatnonzero(inside)
+        footprint = z[idx] / K[i][0, 0]  # [S] a pixel's width at the point: the buffer's own resolution
+        seen = z[idx] <= buffer[uv[idx, 1].astype(int), uv[idx, 0].astype(int)] + depth_tolerance + 2 * footprint
+        idx = idx[seen]
+        grey[i, idx] = _bilinear(np.asarray(image, np.float32), uv[idx])
+    scored = np.isfinite(grey).sum(0) >= min_views
+    if not scored.any():
+        return None
+    spread = np.nanstd(grey[:, scored], axis=0)  # [S]
+    return {"median": float(np.median(spread)), "mean": float(spread.mean()), "p90": float(np.percentile(spread, 90)),
+            "share_scored": float(scored.mean())}
+
+
+def grey_levels(images: np.ndarray) -> np.ndarray:
+    """Grey levels [...] in [0,1] of RGB pixels [...,3] (uint8, or float in [0,1]), ITU-R 601 weights."""
+    rgb = np.asarray(images, np.float32)
+    if np.asarray(images).dtype == np.uint8:
+        rgb = rgb / 255.0
+    return rgb @ np.array([0.299, 0.587, 0.114], np.float32)
