@@ -193,7 +193,11 @@ def neural_scores(evaluate_dir: Path, units: str | None) -> dict:
     out = {"units": units, "n_valid": final["n_views"], "n_views": len(final["per_view"]),
            "pose_round": final["label"], **pose_errors(final["summary"])}
     if "geometry" in ev:
-        out.update(chamfer_units=ev["geometry"]["chamfer_units"], chamfer_reference=ev["geometry"]["reference"])
+        geometry = ev["geometry"]
+        out.update(chamfer_units=geometry["chamfer_units"], chamfer_reference=geometry["reference"])
+        for key in ("colour_spread", "reference_colour_spread"):  # evaluations since 2026-11-28
+            if geometry.get(key):
+                out[key] = geometry[key]["median"]
     views = ev.get("novel_views", {}).get("summary", {})
     if views:
         masked = "psnr_masked" in views
@@ -470,7 +474,7 @@ def systems_table(result: dict, scene_column: bool = False) -> str:
     units = next((s["units"] for s in systems.values() if s.get("units")), "units")
     with_lpips = any(is_number(s.get("lpips")) for s in systems.values())
     header = [*(["scene"] if scene_column else []), "system", "views", "rotation ° mean / median", f"centre ({units}) mean / median", "PRE_r °", "PRE_t °",
-              f"Chamfer ({units})", "PSNR dB", "PSNR dB aligned", "SSIM", *(["LPIPS"] if with_lpips else []), "wall s", "peak MiB",
+              f"Chamfer ({units})", "colour spread", "PSNR dB", "PSNR dB aligned", "SSIM", *(["LPIPS"] if with_lpips else []), "wall s", "peak MiB",
               *(f"{col} ÷ pycolmap" for col, _ in RATIOS)]
     rows = []
     for s in systems.values():
@@ -480,7 +484,7 @@ def systems_table(result: dict, scene_column: bool = False) -> str:
             f"{cell(s, 'rot_err_deg_mean')} / {cell(s, 'rot_err_deg_median')}",
             f"{cell(s, 'center_err_units_mean')} / {cell(s, 'center_err_units_median')}",
             cell(s, "pre_r_deg_mean"), cell(s, "pre_t_deg_mean"), cell(s, "chamfer_units"),
-            cell(s, "psnr", ".2f"), cell(s, "psnr_aligned", ".2f"), cell(s, "ssim", ".3f"),
+            cell(s, "colour_spread", ".4f"), cell(s, "psnr", ".2f"), cell(s, "psnr_aligned", ".2f"), cell(s, "ssim", ".3f"),
             *([cell(s, "lpips", ".3f")] if with_lpips else []),
             cell(s, "wall_seconds", ".0f"), fmt(s["peak_rss_mib"], ".0f"),
             *(fmt(s["over_pycolmap"][col], ".2f") for col, _ in RATIOS),
@@ -535,6 +539,12 @@ def notes(result: dict) -> list[str]:
     if chamfer_refs:
         out.append(f"Chamfer against the {'; '.join(sorted(chamfer_refs))}. pycolmap makes a sparse model, "
                    "no surface and no renderings; NeuS-COLMAP is NeuS trained on its poses.")
+    spreads = [s["reference_colour_spread"] for s in systems.values() if is_number(s.get("reference_colour_spread"))]
+    if any(is_number(s.get("colour_spread")) for s in systems.values()):
+        out.append("Colour spread: the median over the mesh's points of the grey level's standard deviation across the "
+                   "views that see them, at the images' own size under the ground-truth cameras (lower is better; "
+                   "blind to textureless surfaces), a check that needs no masks and no reference"
+                   + (f"; the reference surface's own: {spreads[0]:.4f}." if spreads else "."))
     rendered = [s for s in systems.values() if "psnr" in s]
     if rendered:
         masked = "masked (background zeroed)" if all(s["images_masked"] for s in rendered) else "unmasked"

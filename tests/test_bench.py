@@ -60,7 +60,11 @@ def test_json_has_every_system_with_finite_pose_errors(tiny_bench):
         assert ratios["time"] == pytest.approx(systems[key]["wall_seconds"] / base["wall_seconds"])
     for key in NEURAL_SYSTEMS:
         assert math.isfinite(systems[key]["chamfer_units"]) and systems[key]["psnr"] > 0
+        assert 0 < systems[key]["colour_spread"] < 1  # beside Chamfer, from evaluate
         assert systems[key]["psnr_aligned"] > 0  # scored again after test-time alignment
+    header = bench.systems_table(result).splitlines()[0].split(" | ")
+    chamfer = next(i for i, name in enumerate(header) if name.startswith("Chamfer"))
+    assert header[chamfer + 1] == "colour spread"
     # the front-end is one version, computed once in this run and charged to every NeuS system
     features = [systems[key]["stages"]["features"] for key in NEURAL_SYSTEMS]
     assert len({f["fingerprint"] for f in features}) == 1 and all(f["computed_in_this_bench"] for f in features)
