@@ -50,20 +50,21 @@ def colour_spread(mesh, images, K: np.ndarray, w2c: np.ndarray, *, depth_toleran
     """The colour spread of ``mesh`` (a trimesh) seen by the views ``images`` (N grey images [H,W] in
     [0,1], sizes may differ), ``K`` [N,3,3] and ``w2c`` [N,4,4]. A point is seen by a view that it faces
     (cosine above ``min_facing``), whose frame holds it and whose depth buffer it is within
-    ``depth_tolerance`` (scene units) of; points seen by fewer than ``min_views`` views are left out.
+    ``depth_tolerance`` (scene units) plus two pixels' width of; points seen by fewer than ``min_views``
+    views are left out.
     Returns ``median`` and ``mean`` spread, ``p90``, and ``share_scored`` (the share of the points
     kept); None where the mesh is empty or no point is seen often enough."""
     import trimesh
 
     if mesh is None or len(mesh.faces) == 0:
         return None
-    dense, _ = trimesh.sample.sample_surface(mesh, splat_points, seed=seed + 1)
+    dense = np.asarray(trimesh.sample.sample_surface(mesh, splat_points, seed=seed + 1)[0])  # [D,3] the z-buffers'
     points, faces = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
     points, normals = np.asarray(points), np.asarray(mesh.face_normals[faces])  # [P,3] each
     grey = np.full((len(images), len(points)), np.nan, np.float32)  # [N,P]
     for i, image in enumerate(images):
         H, W = image.shape[:2]
-        buffer = _depth_buffer(np.asarray(dense), K[i], w2c[i], (H, W))
+        buffer = _depth_buffer(dense, K[i], w2c[i], (H, W))
         cam = points @ w2c[i][:3, :3].T + w2c[i][:3, 3]  # [P,3]
         centre = -w2c[i][:3, :3].T @ w2c[i][:3, 3]
         to_camera = centre - points
