@@ -17,13 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Grey levels [P] at pixel positions uv [P,2] (pixel centres at integers, inside [0, W-1) x [0, H-1))."""
-    x0, y0 = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-    fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
-    return (image[y0, x0] * (1 - fx) * (1 - fy) + image[y0, x0 + 1] * fx * (1 - fy)
-            + image[y0 + 1, x0] * (1 - fx) * fy + image[y0 + 1, x0 + 1] * fx * fy)
+from manifoldneus.geometry import cameras
 
 
 def _depth_buffer(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) -> np.ndarray:
@@ -32,15 +26,13 @@ def _depth_buffer(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) -> np.
     import cv2
 
     H, W = hw
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]  # [P,3]
-    z = cam[:, 2]
-    front = z > 1e-9
-    uv = cam[front] @ K.T
-    uv = uv[:, :2] / uv[:, 2:]
+    cam = cameras.transform_points(w2c, points)  # [P,3]
+    cam = cam[cam[:, 2] > 1e-9]
+    uv = cameras.project_points(K, cam)  # [P,2]
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
     flat = uv[inside, 1].astype(int) * W + uv[inside, 0].astype(int)
     buffer = np.full(H * W, np.inf, np.float32)
-    np.minimum.at(buffer, flat, z[front][inside].astype(np.float32))
+    np.minimum.at(buffer, flat, cam[inside, 2].astype(np.float32))
     buffer = buffer.reshape(H, W)
     return np.where(np.isinf(buffer), cv2.erode(buffer, np.ones((3, 3), np.uint8)), buffer)
 
@@ -55,6 +47,7 @@ def colour_spread(mesh, images, K: np.ndarray, w2c: np.ndarray, *, depth_toleran
     Returns ``median`` and ``mean`` spread, ``p90``, and ``share_scored`` (the share of the points
     kept); None where the mesh is empty or no point is seen often enough."""
     import trimesh
+    from scipy.ndimage import map_coordinates
 
     if mesh is None or len(mesh.faces) == 0:
         return None
@@ -65,19 +58,17 @@ def colour_spread(mesh, images, K: np.ndarray, w2c: np.ndarray, *, depth_toleran
     for i, image in enumerate(images):
         H, W = image.shape[:2]
         buffer = _depth_buffer(dense, K[i], w2c[i], (H, W))
-        cam = points @ w2c[i][:3, :3].T + w2c[i][:3, 3]  # [P,3]
-        centre = -w2c[i][:3, :3].T @ w2c[i][:3, 3]
-        to_camera = centre - points
+        cam = cameras.transform_points(w2c[i], points)  # [P,3]
+        to_camera = cameras.camera_centers(w2c[i]) - points
         facing = np.einsum("pi,pi->p", normals, to_camera) > min_facing * np.linalg.norm(to_camera, axis=1)
-        z = cam[:, 2]
-        uv = cam @ K[i].T
-        uv = uv[:, :2] / np.where(np.abs(uv[:, 2:]) > 1e-12, uv[:, 2:], 1e-12)
-        inside = facing & (z > 1e-9) & (uv[:, 0] >= 0) & (uv[:, 0] < W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < H - 1)
-        idx = np.flatnonzero(inside)
-        footprint = z[idx] / K[i][0, 0]  # [S] a pixel's width at the point: the buffer's own resolution
-        seen = z[idx] <= buffer[uv[idx, 1].astype(int), uv[idx, 0].astype(int)] + depth_tolerance + 2 * footprint
-        idx = idx[seen]
-        grey[i, idx] = _bilinear(np.asarray(image, np.float32), uv[idx])
+        idx = np.flatnonzero(facing & (cam[:, 2] > 1e-9))
+        uv = cameras.project_points(K[i], cam[idx])  # [S,2]
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] < H - 1)
+        idx, uv, z = idx[inside], uv[inside], cam[idx[inside], 2]
+        footprint = z / K[i][0, 0]  # [S] a pixel's width at the point: the buffer's own resolution
+        seen = z <= buffer[uv[:, 1].astype(int), uv[:, 0].astype(int)] + depth_tolerance + 2 * footprint
+        # bilinear, pixel centres at integers
+        grey[i, idx[seen]] = map_coordinates(np.asarray(image, np.float32), uv[seen, ::-1].T, order=1)
     scored = np.isfinite(grey).sum(0) >= min_views
     if not scored.any():
         return None
