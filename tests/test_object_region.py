@@ -375,3 +375,43 @@ def test_the_supports_own_points_leave_the_silhouettes_and_the_skirt_around_the_
     kept = evaluation.make_mesh(_analytic_trainer(sdf, 128), dataclasses.replace(p, support="keep"), K, w2c,
                                 hw=tuple(sizes[0]), region=region, object_points=points)
     assert (np.linalg.norm(np.asarray(kept.vertices)[:, :2], axis=1) > 0.5).sum() > len(V)  # kept: table and ring
+
+
+def test_the_extent_scale_brings_the_objects_reach_within_the_radius_never_beyond():
+    from stages.surface import extent_scale
+
+    rng = np.random.default_rng(0)
+    shell = rng.normal(size=(500, 3))
+    shell = 0.8 * shell / np.linalg.norm(shell, axis=1, keepdims=True)  # [500,3] the object reaching 0.8
+    seen = np.full(len(shell), 0.5)
+    assert extent_scale(shell, seen, None, 0.6, 0.2) == pytest.approx(0.75)
+    # points few views see (background at the frame's edge) and points outside the object's region do not count
+    far = np.tile([[0.0, 0.0, 3.0]], (50, 1))
+    region = object_region.ObjectRegion([0.0, 0.0, 0.0], 1.0)
+    both = np.concatenate([shell, far, shell[:50] * 1.2])
+    seen_both = np.concatenate([seen, np.full(50, 0.9), np.full(50, 0.1)])
+    assert extent_scale(both, seen_both, region, 0.6, 0.2) == pytest.approx(0.75)
+    assert extent_scale(0.5 * shell, seen, None, 0.6, 0.2) == 1.0  # never up: the field keeps its resolution
+    assert extent_scale(shell[:10], seen[:10], None, 0.6, 0.2) == 1.0  # too few points to say
+
+
+def test_without_masks_the_surface_field_holds_the_objects_whole_extent(on_a_floor):
+    """The surface stage's frame, without masks, is the gauge scaled down so that the points of the object's
+    region that a fifth of the views see lie within surface.extent_radius; the mesh stage follows it."""
+    from stages import anchors, surface as surface_stage
+
+    store = on_a_floor
+    final, used, _ = _final_round_points(store)
+    views = artifacts.load_views(store.version_dir("ingest", store.current("ingest")), None, final["K"])
+    G = np.asarray(io.load_json(store.version_dir("surface", store.current("surface")) / "round.json")["field_from_model"])
+    gauge = surface_stage.field_frame(final, views, used, anchors.Params(), "sfm")  # [4,4] unscaled
+    scale = cameras.sim3_from_matrix(G)[0] / cameras.sim3_from_matrix(gauge)[0]
+    assert np.allclose(G, cameras.sim3_matrix(scale, np.eye(3), np.zeros(3)) @ gauge, atol=1e-9)
+    p = surface_stage.Params()
+    region = object_region.ObjectRegion.from_json(io.load_json(
+        store.version_dir("anchors", store.current("anchors")) / "round_0" / "round.json")["init"]["object_region"])
+    seen = object_region.seen_fraction(final["track_points"], final["K"][used], final["w2c"][used], views.view_sizes[used])
+    points = cameras.transform_points(G, final["track_points"])  # [T,3] the field's frame
+    counted = (seen >= p.extent_min_seen) & region.transformed(G).contains(points)
+    reach = np.percentile(np.linalg.norm(points[counted], axis=1), 99)
+    assert scale <= 1.0 and (reach == pytest.approx(p.extent_radius) if scale < 1 else reach <= p.extent_radius)
