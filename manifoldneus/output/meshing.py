@@ -213,6 +213,16 @@ def cull_by_masks(mesh, K, w2c, masks, dilation: int = 12, rule: str = "all", mi
     return keep_vertices(mesh, keep)
 
 
+def splat_depth(uv: np.ndarray, z: np.ndarray, hw) -> np.ndarray:
+    """[H,W] z-buffer of points splatted one pixel each: per pixel the least depth z [P] of the points whose
+    pixel coordinates uv [P,2] fall in it, inf where none does (points outside the image ``hw`` = (H, W) left out)."""
+    H, W = hw
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    buffer = np.full(H * W, np.inf, z.dtype)
+    np.minimum.at(buffer, uv[inside, 1].astype(int) * W + uv[inside, 0].astype(int), z[inside])
+    return buffer.reshape(H, W)
+
+
 def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0, sizes=None):
     """Remove vertices that no view sees: surface the training never observed (e.g. the underside,
     where a grid SDF keeps its initial sphere) has no image evidence, and DTU's evaluation crops it too.
@@ -236,9 +246,7 @@ def cull_unseen(mesh, K, w2c, hw, size: int = 128, depth_tol_px: float = 4.0, si
         ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
         idx = np.flatnonzero(ok)
         pix = uv[idx, 1].astype(int) * w + uv[idx, 0].astype(int)
-        zbuf = np.full(h * w, np.inf)
-        np.minimum.at(zbuf, pix, z[idx])
-        zbuf = minimum_filter(zbuf.reshape(h, w), size=3, mode="nearest").reshape(-1)
+        zbuf = minimum_filter(splat_depth(uv[idx], z[idx], (h, w)), size=3, mode="nearest").reshape(-1)
         footprint = z[idx] / (0.5 * (Ki[0, 0] + Ki[1, 1]) * scale)  # world size of a z-buffer pixel
         seen[idx[z[idx] <= zbuf[pix] + depth_tol_px * footprint]] = True
     return keep_vertices(mesh, seen)

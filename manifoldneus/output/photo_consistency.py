@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from manifoldneus.geometry import cameras
+from manifoldneus.output.meshing import splat_depth
 
 
 def _depth_buffer(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) -> np.ndarray:
@@ -25,15 +26,9 @@ def _depth_buffer(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) -> np.
     takes the nearest depth of its 3x3 neighbourhood (inf where none lands there either)."""
     import cv2
 
-    H, W = hw
     cam = cameras.transform_points(w2c, points)  # [P,3]
     cam = cam[cam[:, 2] > 1e-9]
-    uv = cameras.project_points(K, cam)  # [P,2]
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-    flat = uv[inside, 1].astype(int) * W + uv[inside, 0].astype(int)
-    buffer = np.full(H * W, np.inf, np.float32)
-    np.minimum.at(buffer, flat, cam[inside, 2].astype(np.float32))
-    buffer = buffer.reshape(H, W)
+    buffer = splat_depth(cameras.project_points(K, cam), cam[:, 2].astype(np.float32), hw)
     return np.where(np.isinf(buffer), cv2.erode(buffer, np.ones((3, 3), np.uint8)), buffer)
 
 
