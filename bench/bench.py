@@ -376,6 +376,78 @@ def over_seeds(per_seed: dict[str, dict]) -> dict:
     return {**out, **({"error": "; ".join(errors)} if errors else {})}
 
 
+# ---------------------------------------------------------------------------- targets
+
+TIE = 1e-4  # relative: the same poses in another frame (a similarity there and back) are equal to about 1e-15
+# the same mesh written (float32 vertices) in another frame: 100 k points sampled on it move its Chamfer by ~1e-4
+CHAMFER_TIE = 1e-3
+PHOTOS_ALONE_MAX_RATIO = 1.3  # photos alone's Chamfer, at most this multiple of the calibrated masked run's
+
+# (name, check(one seed's systems) -> (value, limit), higher_is_better, tie)
+SURFACE_TARGETS = [  # every scene: the surface no worse than NeuS on sfm-all's poses at equal iterations
+    ("Chamfer <= NeuS on sfm-all's poses at equal iterations",
+     lambda s: (s["manifoldneus"].get("chamfer_units"), s["sfm-all"].get("chamfer_units")), False, CHAMFER_TIE),
+    ("aligned held-out PSNR >= NeuS on sfm-all's poses at equal iterations",
+     lambda s: (s["manifoldneus"].get("psnr_aligned"), s["sfm-all"].get("psnr_aligned")), True, TIE),
+]
+PHOTOS_ALONE_TARGET = (
+    f"photos alone's Chamfer <= {PHOTOS_ALONE_MAX_RATIO} x the calibrated masked run's",
+    lambda s: (s["photos-alone"].get("chamfer_units"),
+               PHOTOS_ALONE_MAX_RATIO * s["manifoldneus"]["chamfer_units"]
+               if is_number(s["manifoldneus"].get("chamfer_units")) else None), False, TIE)
+SCENE_TARGETS = {  # scene -> targets of its own (the DTU objects: photos alone against the masked run)
+    "scan24": [PHOTOS_ALONE_TARGET,
+               ("mesh stage <= 20 s", lambda s: (s["manifoldneus"]["stages"].get("mesh", {}).get("wall_seconds"), 20.0),
+                False, TIE)],
+    "scan24_idr": [PHOTOS_ALONE_TARGET],
+    "scan65_idr": [PHOTOS_ALONE_TARGET],
+}
+
+
+def at_most(value: float, limit: float, tie: float = TIE) -> bool:
+    """``value <= limit``, equal within ``tie`` (relative) counting as equal."""
+    return value <= limit * (1 + tie)
+
+
+def target_row(name: str, rows: list[tuple], higher_is_better: bool = False, tie: float = TIE) -> dict:
+    """One target over seeds: ``rows`` of (seed, value, limit); met where value <= limit (>= with
+    `higher_is_better`), ties within ``tie`` counting as met."""
+    met = [at_most(lim, v, tie) if higher_is_better else at_most(v, lim, tie) for _, v, lim in rows]
+    return {"target": name, "per_seed": [{"seed": seed, "value": v, "limit": lim, "met": m}
+                                         for (seed, v, lim), m in zip(rows, met)],
+            "met_every_seed": bool(rows) and all(met)}
+
+
+def targets(result: dict) -> list[dict]:
+    """The surface's targets of one scene's bench, each per seed (from `per_seed`, or the one run's
+    `systems`); a target whose systems or figures the bench lacks is left out."""
+    by_seed = result.get("per_seed") or {str((result.get("seeds") or [None])[0]): result["systems"]}
+    out = []
+    for name, check, higher_is_better, tie in [*SURFACE_TARGETS, *SCENE_TARGETS.get(result["scene"], [])]:
+        try:
+            rows = [(int(seed) if seed.isdigit() else seed, *check(systems)) for seed, systems in by_seed.items()]
+        except KeyError:  # a system this bench did not run
+            continue
+        if rows and all(is_number(v) and is_number(lim) for _, v, lim in rows):
+            out.append(target_row(name, rows, higher_is_better, tie))
+    return out
+
+
+def target_text(t: dict) -> str:
+    """'met' or 'MISSED', with each seed's value against its limit."""
+    verdict = "met" if t["met_every_seed"] else "MISSED"
+    if "per_seed" in t:
+        return verdict + " (" + ", ".join(("" if x.get("seed") is None else f"seed {x['seed']} ")
+                                          + f"{x['value']:.4g} vs {x['limit']:.4g}" for x in t["per_seed"]) + ")"
+    return verdict + (f" ({t['value']:.4g})" if t.get("value") is not None else "")
+
+
+def targets_markdown(result: dict) -> str:
+    """One line: the scene's targets, each met or MISSED with every seed's value against its limit."""
+    found = targets(result)
+    return f"{result['scene']} targets: " + "; ".join(f"{t['target']}: {target_text(t)}" for t in found) if found else ""
+
+
 def run_benches(scenes: list[str], systems: list[System], overrides=(), until=None, force=(),
                 artifacts=runner.DEFAULT_ARTIFACTS, executor_name: str = "in-process", workers: int | None = None,
                 seeds: list[int] | None = None) -> dict[str, dict]:
@@ -417,6 +489,7 @@ def run_benches(scenes: list[str], systems: list[System], overrides=(), until=No
             "stages": stage_rows(first_runs[scene]),
             "summary": summarise({run.preset: run for run in first_runs[scene]}.get(None, first_runs[scene][0]).rows),
         }
+        results[scene]["targets"] = targets(results[scene])
     return results
 
 
@@ -612,7 +685,7 @@ def main(argv=None) -> int:
         return 2
     for result in results.values():
         path = write_result(result, args.out_dir)
-        print(f"## {result['scene']}: systems\n\n{comparison_markdown(result)}\n")
+        print(f"## {result['scene']}: systems\n\n{comparison_markdown(result)}\n\n{targets_markdown(result)}\n")
         print(f"## {result['scene']}: every version used\n\n{stages_table(result['stages'])}\n")
         for k, v in result["summary"].items():
             print(f"- {k}: {v}")

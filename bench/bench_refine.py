@@ -172,26 +172,13 @@ TARGETS = {  # scene -> list of (name, check(run) -> (value, limit, met))
 }
 
 
-TIE = 1e-4  # relative: the same poses in another frame (a similarity there and back) are equal to about 1e-15
-# the same mesh written (float32 vertices) in another frame: 100 k points sampled on it move its Chamfer by ~1e-4
-CHAMFER_TIE = 1e-3
-
-
-def at_most(value: float, limit: float, tie: float = TIE) -> bool:
-    """``value <= limit``, equal within ``tie`` (relative) counting as equal."""
-    return value <= limit * (1 + tie)
-
-
 def targets(scene: str, runs: list[dict]) -> list[dict]:
     out = []
     ok = [r for r in runs if "final" in r]
 
     def per_seed(name: str, rows: list[tuple[dict, float, float]], higher_is_better: bool = False,
-                 tie: float = TIE) -> dict:
-        met = [at_most(lim, v, tie) if higher_is_better else at_most(v, lim, tie) for _, v, lim in rows]
-        return {"target": name, "per_seed": [{"seed": r["seed"], "value": v, "limit": lim, "met": m}
-                                             for (r, v, lim), m in zip(rows, met)],
-                "met_every_seed": bool(rows) and all(met)}
+                 tie: float = bench.TIE) -> dict:
+        return bench.target_row(name, [(r["seed"], v, lim) for r, v, lim in rows], higher_is_better, tie)
 
     for name, check in [*TARGETS.get(scene, []), *SFM_ALL_TARGETS]:
         rows = [(r, *check(r)) for r in ok]
@@ -205,7 +192,7 @@ def targets(scene: str, runs: list[dict]) -> list[dict]:
     trained = [r for r in ok if r["sfm_all"].get("chamfer") is not None and r.get("chamfer") is not None]
     if trained:
         out.append(per_seed("Chamfer <= NeuS on sfm-all's poses at equal iterations",
-                            [(r, r["chamfer"], r["sfm_all"]["chamfer"]) for r in trained], tie=CHAMFER_TIE))
+                            [(r, r["chamfer"], r["sfm_all"]["chamfer"]) for r in trained], tie=bench.CHAMFER_TIE))
         out.append(per_seed("aligned held-out PSNR >= NeuS on sfm-all's poses at equal iterations",
                             [(r, r["psnr_masked_aligned"], r["sfm_all"]["psnr_masked_aligned"]) for r in trained
                              if r["sfm_all"].get("psnr_masked_aligned") is not None], higher_is_better=True))
@@ -215,14 +202,6 @@ def targets(scene: str, runs: list[dict]) -> list[dict]:
                     "per_seed": [{"value": a, "limit": b - 0.5, "met": a >= b - 0.5} for a, b in psnr],
                     "met_every_seed": all(a >= b - 0.5 for a, b in psnr)})
     return out
-
-
-def target_text(t: dict) -> str:
-    """'met' or 'MISSED', with each seed's value against its limit."""
-    verdict = "met" if t["met_every_seed"] else "MISSED"
-    if "per_seed" in t:
-        return verdict + " (" + ", ".join(f"{x['value']:.3f} vs {x['limit']:.3f}" for x in t["per_seed"]) + ")"
-    return verdict + (f" ({t['value']:.3f})" if t.get("value") is not None else "")
 
 
 def pm(s: dict, spec: str = ".3f") -> str:
@@ -256,7 +235,7 @@ def markdown(result: dict, targets: bool = True) -> str:
             f"{lab} {pm(v['start_rot_deg'])} -> {pm(v['rot_deg'])}" if v["start_rot_deg"]["n"] else f"{lab} {pm(v['rot_deg'])}"
             for lab, v in per.items()))
         if targets:
-            parts.append(f"{scene} targets: " + "; ".join(f"{t['target']}: {target_text(t)}" for t in sc["targets"]))
+            parts.append(f"{scene} targets: " + "; ".join(f"{t['target']}: {bench.target_text(t)}" for t in sc["targets"]))
     return "\n\n".join(parts)
 
 

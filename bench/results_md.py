@@ -212,7 +212,8 @@ def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
     everywhere = {r["scene"] for _, r in shown}
     notes = [n if set(sc) == everywhere else f"{', '.join(sc)}: {n}" for n, sc in scenes_of.items()]
     footnotes = "\n".join(f"{i}. {n}" for i, n in enumerate(notes, 1))
-    return "\n".join(lines) + f"\n\n{table}\n\n{footnotes}"
+    checked = "\n\n".join(line for _, result in shown if (line := bench.targets_markdown(result)))
+    return "\n".join(lines) + f"\n\n{table}\n\n{footnotes}" + (f"\n\n{checked}" if checked else "")
 
 
 def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:

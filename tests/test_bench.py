@@ -190,6 +190,30 @@ def test_a_failed_system_is_named_under_the_table(tiny_bench):
         "its row shows no mean." in bench.notes(result)
 
 
+def test_the_surface_targets_per_seed_come_from_each_seeds_figures(tiny_bench):
+    _, result = bench_json(tiny_bench[0])
+    assert result["targets"] == bench.targets(result)  # stored as computed: a README from the JSON shows the same
+    chamfer = next(t for t in result["targets"] if t["target"].startswith("Chamfer <= NeuS on sfm-all"))
+    for row in chamfer["per_seed"]:
+        seed = result["per_seed"][str(row["seed"])]
+        assert (row["value"], row["limit"]) == (seed["manifoldneus"]["chamfer_units"], seed["sfm-all"]["chamfer_units"])
+        assert row["met"] == (row["value"] <= row["limit"] * (1 + bench.CHAMFER_TIE))
+    assert chamfer["met_every_seed"] == all(r["met"] for r in chamfer["per_seed"])
+    assert not any("photos alone" in t["target"] for t in result["targets"])  # a DTU object's target only
+    # the same figures as a DTU object's: photos alone against 1.3x the masked run, missed on one seed only
+    dtu = json.loads(json.dumps({**result, "scene": "scan24_idr"}))
+    masked = dtu["per_seed"]["1"]["manifoldneus"]["chamfer_units"]
+    dtu["per_seed"]["0"]["photos-alone"]["chamfer_units"] = dtu["per_seed"]["0"]["manifoldneus"]["chamfer_units"]
+    dtu["per_seed"]["1"]["photos-alone"]["chamfer_units"] = 1.31 * masked
+    [alone] = [t for t in bench.targets(dtu) if "photos alone" in t["target"]]
+    assert [r["met"] for r in alone["per_seed"]] == [True, False] and not alone["met_every_seed"]
+    assert alone["per_seed"][1]["limit"] == pytest.approx(1.3 * masked)
+    line = bench.targets_markdown(dtu)
+    assert line.startswith("scan24_idr targets: ") and "MISSED (seed 0 " in line
+    del dtu["per_seed"]["0"]["photos-alone"]  # a bench without the system: the target is left out, not failed
+    assert not any("photos alone" in t["target"] for t in bench.targets(dtu))
+
+
 def test_partial_runs_do_not_overwrite_the_full_bench(tmp_path):
     full = {"scene": "s", "date": "2026-01-02T10:00:00", "until": None, "systems": dict.fromkeys(bench.SYSTEMS)}
     assert bench.result_path(full, tmp_path).name == "2026-01-02.json"
@@ -220,6 +244,7 @@ def test_results_md_replaces_between_markers_only_and_is_idempotent(tiny_bench, 
     assert "old numbers" not in inside and "2026-01-01.json" in inside
     assert "| synthetic | ManifoldNeuS |" in inside and "time ÷ pycolmap" in inside and result["date"][:10] in inside
     assert " ± " in inside and "stage (wall s" not in inside  # the spread over seeds; the stage table stays out
+    assert "synthetic targets: Chamfer <= NeuS on sfm-all's poses at equal iterations: " in inside
     with pytest.raises(ValueError):
         results_md.replace_between_markers("no markers here", "body")
 
