@@ -578,8 +578,9 @@ def stage_system_table(result: dict) -> str:
     return markdown_table([f"stage ({what})", *(s["label"] for s in systems)], rows)
 
 
-def notes(result: dict) -> list[str]:
-    """Footnotes that say how the systems table was measured."""
+def notes(result: dict, definitions: bool = True) -> list[str]:
+    """Footnotes that say how the systems table was measured; without `definitions`, only those that
+    depend on the result (docs/BENCHMARKS.md defines the pose errors, the ratios, the memory and the colour spread)."""
     systems = result["systems"]
     charged = [st for s in systems.values() for st in s["stages"].values()]
     fresh = sum(st["computed_in_this_bench"] for st in charged)
@@ -589,10 +590,11 @@ def notes(result: dict) -> list[str]:
     seeds = result.get("seeds") or []
     out = [f"Mean ± std over the seeds {', '.join(map(str, seeds))} (`run.seed`; std with ddof 1); the ratios are "
            "of the means. Per seed: `per_seed` in the JSON."] if len(seeds) > 1 else []
-    out += [
+    out.append(
         "Times: sum of the wall times recorded in the manifests of the stages charged to each system (per stage: "
         "the bench's stage table and the JSON). Versions shared between systems (ingest, the front-end, the pycolmap reference) are computed "
-        f"once and counted for every system that uses them; evaluation stages are never counted. {fresh_note}",
+        f"once and counted for every system that uses them; evaluation stages are never counted. {fresh_note}")
+    out += [
         "Pose errors after a Sim3 alignment to the ground truth, fitted on the camera centres; the NeuS systems "
         "over the views they optimise (held-out views excluded), pycolmap over the views it registers. PRE_r / "
         "PRE_t: mean relative pose errors over view pairs, which no alignment changes (a shift of the centres "
@@ -601,7 +603,7 @@ def notes(result: dict) -> list[str]:
         "above 1, pycolmap is better.",
         "Peak memory: the largest peak RSS of the system's stages, measured on the one bench process, so it "
         "includes what earlier stages left allocated (an upper bound).",
-    ]
+    ] if definitions else []
     iters = {s["label"]: s.get("field_iters") for s in systems.values() if is_number(s.get("field_iters"))}
     if iters:
         out.append("Iterations of the field the mesh and the renderings come from (the surface stage's): "
@@ -613,7 +615,9 @@ def notes(result: dict) -> list[str]:
         out.append(f"Chamfer against the {'; '.join(sorted(chamfer_refs))}. pycolmap makes a sparse model, "
                    "no surface and no renderings; NeuS-COLMAP is NeuS trained on its poses.")
     spreads = [s["reference_colour_spread"] for s in systems.values() if is_number(s.get("reference_colour_spread"))]
-    if any(is_number(s.get("colour_spread")) for s in systems.values()):
+    if any(is_number(s.get("colour_spread")) for s in systems.values()) and not definitions:
+        out += [f"The reference surface's own colour spread: {spreads[0]:.4f}."] if spreads else []
+    elif any(is_number(s.get("colour_spread")) for s in systems.values()):
         out.append("Colour spread: the median over the mesh's points of the grey level's standard deviation across the "
                    "views that see them, at the images' own size under the ground-truth cameras (lower is better; "
                    "blind to textureless surfaces), a check that needs no masks and no reference"

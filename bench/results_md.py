@@ -207,13 +207,15 @@ def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
     table = "\n\n".join("\n".join(t) for t in groups.values())
     scenes_of: dict[str, list[str]] = {}  # note -> the scenes it is written for, in table order
     for _, result in shown:
-        for n in bench.notes(result):
+        for n in bench.notes(result, definitions=False):
             scenes_of.setdefault(n, []).append(result["scene"])
     everywhere = {r["scene"] for _, r in shown}
     notes = [n if set(sc) == everywhere else f"{', '.join(sc)}: {n}" for n, sc in scenes_of.items()]
+    notes.append("Pose errors (after a Sim3 fitted on the camera centres; PRE_r / PRE_t need none), the ratios to "
+                 "pycolmap, peak memory and the colour spread: [docs/BENCHMARKS.md](docs/BENCHMARKS.md#the-columns).")
     footnotes = "\n".join(f"{i}. {n}" for i, n in enumerate(notes, 1))
-    checked = "\n\n".join(line for _, result in shown if (line := bench.targets_markdown(result)))
-    return "\n".join(lines) + f"\n\n{table}\n\n{footnotes}" + (f"\n\n{checked}" if checked else "")
+    checked = "\n".join(f"- {line}" for _, result in shown if (line := bench.targets_markdown(result)))
+    return " ".join(lines) + f"\n\n{table}\n\n{footnotes}" + (f"\n\n{checked}" if checked else "")
 
 
 def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
@@ -248,8 +250,9 @@ def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
                   f"_Measured {result['date'].replace('T', ' ')} on {m.get('cpu_model') or m['platform']}, {m['cpus']} "
                   f"CPUs; `{rel(refine[-1], root)}`"
                   + ("; with " + " ".join(f"`--set {o}`" for o in result["overrides"]) if result.get("overrides") else "")
-                  + kernel_note(result) + "; each seed's targets: `python -m bench.bench_refine` prints them._",
-                  bench_refine.markdown(result, targets=False)]
+                  + kernel_note(result) + "; each scene's rounds and each seed's targets: `python -m bench.bench_refine` "
+                  "prints them._",
+                  bench_refine.markdown(result, detail=False)]
         if missing:
             parts.append("The sfm-all columns show \"-\": this JSON predates the `sfm-all` preset; "
                          "`make bench-refine` measures them.")
