@@ -245,6 +245,9 @@ def test_results_md_replaces_between_markers_only_and_is_idempotent(tiny_bench, 
     assert "| synthetic | ManifoldNeuS |" in inside and "time ÷ pycolmap" in inside and result["date"][:10] in inside
     assert " ± " in inside and "stage (wall s" not in inside  # the spread over seeds; the stage table stays out
     assert "synthetic targets: Chamfer <= NeuS on sfm-all's poses at equal iterations: " in inside
+    # the columns' definitions are linked, not repeated; what depends on the figures stays
+    assert "docs/BENCHMARKS.md#the-columns" in inside and "Peak memory:" not in inside and "Times: sum" in inside
+    assert "### The columns" in (bench.ROOT / "docs" / "BENCHMARKS.md").read_text()
     with pytest.raises(ValueError):
         results_md.replace_between_markers("no markers here", "body")
 
