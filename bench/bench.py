@@ -615,13 +615,14 @@ def notes(result: dict, definitions: bool = True) -> list[str]:
         out.append(f"Chamfer against the {'; '.join(sorted(chamfer_refs))}. pycolmap makes a sparse model, "
                    "no surface and no renderings; NeuS-COLMAP is NeuS trained on its poses.")
     spreads = [s["reference_colour_spread"] for s in systems.values() if is_number(s.get("reference_colour_spread"))]
-    if any(is_number(s.get("colour_spread")) for s in systems.values()) and not definitions:
-        out += [f"The reference surface's own colour spread: {spreads[0]:.4f}."] if spreads else []
-    elif any(is_number(s.get("colour_spread")) for s in systems.values()):
-        out.append("Colour spread: the median over the mesh's points of the grey level's standard deviation across the "
-                   "views that see them, at the images' own size under the ground-truth cameras (lower is better; "
-                   "blind to textureless surfaces), a check that needs no masks and no reference"
-                   + (f"; the reference surface's own: {spreads[0]:.4f}." if spreads else "."))
+    if any(is_number(s.get("colour_spread")) for s in systems.values()):
+        if definitions:
+            out.append("Colour spread: the median over the mesh's points of the grey level's standard deviation across "
+                       "the views that see them, at the images' own size under the ground-truth cameras (lower is "
+                       "better; blind to textureless surfaces), a check that needs no masks and no reference"
+                       + (f"; the reference surface's own: {spreads[0]:.4f}." if spreads else "."))
+        elif spreads:
+            out.append(f"The reference surface's own colour spread: {spreads[0]:.4f}.")
     rendered = [s for s in systems.values() if "psnr" in s]
     if rendered:
         masked = "masked (background zeroed)" if all(s["images_masked"] for s in rendered) else "unmasked"

@@ -229,7 +229,9 @@ def markdown(result: dict, detail: bool = True) -> str:
                      pm(s["sfm_all_psnr_masked_aligned"], ".2f"), pm(s["chamfer"], ".3g"), pm(s["sfm_all_chamfer"], ".3g"),
                      pm(s["wall_seconds"], ".0f")])
     parts = [bench.markdown_table(header, rows)]
-    for scene, sc in result["scenes"].items() if detail else ():
+    if not detail:
+        return parts[0]
+    for scene, sc in result["scenes"].items():
         per = sc["summary"]["per_round"]
         parts.append(f"{scene}, per round (mean rotation error of the round's views, deg: start -> end): " + "; ".join(
             f"{lab} {pm(v['start_rot_deg'])} -> {pm(v['rot_deg'])}" if v["start_rot_deg"]["n"] else f"{lab} {pm(v['rot_deg'])}"
