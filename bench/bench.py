@@ -578,9 +578,10 @@ def stage_system_table(result: dict) -> str:
     return markdown_table([f"stage ({what})", *(s["label"] for s in systems)], rows)
 
 
-def notes(result: dict, definitions: bool = True) -> list[str]:
+def notes(result: dict, definitions: bool = True, reference_spread: bool = True) -> list[str]:
     """Footnotes that say how the systems table was measured; without `definitions`, only those that
-    depend on the result (docs/BENCHMARKS.md defines the pose errors, the ratios, the memory and the colour spread)."""
+    depend on the result (docs/BENCHMARKS.md defines the pose errors, the ratios, the memory and the colour spread);
+    without `reference_spread`, not the reference surface's own colour spread (README lists every scene's in one note)."""
     systems = result["systems"]
     charged = [st for s in systems.values() for st in s["stages"].values()]
     fresh = sum(st["computed_in_this_bench"] for st in charged)
@@ -621,7 +622,7 @@ def notes(result: dict, definitions: bool = True) -> list[str]:
                        "the views that see them, at the images' own size under the ground-truth cameras (lower is "
                        "better; blind to textureless surfaces), a check that needs no masks and no reference"
                        + (f"; the reference surface's own: {spreads[0]:.4f}." if spreads else "."))
-        elif spreads:
+        elif spreads and reference_spread:
             out.append(f"The reference surface's own colour spread: {spreads[0]:.4f}.")
     rendered = [s for s in systems.values() if "psnr" in s]
     if rendered:

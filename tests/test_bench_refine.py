@@ -55,11 +55,11 @@ def test_refinement_bench_two_seeds(tmp_path, tiny_copy, capsys):
     assert all(r["final"]["pre_r_deg"] > 0 and r["sfm_all"]["pre_r_deg"] > 0 for r in runs)
     assert s["final_pre_r_deg"]["mean"] == pytest.approx(sum(r["final"]["pre_r_deg"] for r in runs) / 2)
     assert "| synthetic | 0,1 |" in printed and "±" in printed
-    # README's Results: the refinement table
+    # docs/REFINEMENT.md's current figures: the refinement table, each seed's targets
     from bench import results_md
 
-    md = results_md.results_markdown(tmp_path / "bench", root=tmp_path)
-    assert "### Refinement" in md and "| synthetic | 0,1 |" in md
+    md = results_md.refinement_markdown(tmp_path / "bench", root=tmp_path)
+    assert "| synthetic | 0,1 |" in md and "synthetic targets:" in md
 
 
 def test_the_seeds_share_one_gt_pose_training_and_the_summary_counts_it_once(tmp_path):

@@ -1,7 +1,8 @@
 """README.md is a short user's guide whose figures come from the bench JSON.
 
 - at most 250 lines;
-- its generated parts (results block, headline) equal what `make results` writes from bench/*.json;
+- its generated parts (results block, headline), and docs/REFINEMENT.md's current figures, equal what
+  `make results` writes from bench/*.json;
 - outside the generated parts no word looks like a commit hash, and no word anywhere names a commit;
 - every relative link and every docs/ path it names is a file in the repository.
 """
@@ -55,6 +56,14 @@ def test_headline_is_what_make_results_writes():
     assert head == results_md.headline_markdown(bench.DEFAULT_OUT_DIR).strip(), "run `make results`"
     # and the whole file is a fixed point of `make results`
     assert results_md.render_readme(text, bench.DEFAULT_OUT_DIR) == text
+
+
+def test_the_refinement_page_block_is_what_make_results_writes():
+    text = (ROOT / "docs" / "REFINEMENT.md").read_text(encoding="utf-8")
+    block = results_md.between_markers(text, results_md.REFINEMENT_BEGIN, results_md.REFINEMENT_END)
+    assert block is not None, "docs/REFINEMENT.md's current figures are generated: it needs the refinement markers"
+    assert block == results_md.refinement_markdown(bench.DEFAULT_OUT_DIR).strip(), "run `make results`"
+    assert "| scene | seeds |" in block  # the table itself, not only a note
 
 
 def test_no_commit_hash_in_readme():
@@ -112,6 +121,9 @@ def test_scenes_in_the_same_units_share_one_table():
     mm = json.loads((ROOT / "bench/scan24/2026-11-25.json").read_text())
     other_mm = copy.deepcopy(mm)
     other_mm["scene"] = "scan24_idr"
+    for result, spread in ((mm, 0.06), (other_mm, 0.05)):  # each reference's own colour spread
+        for system in result["systems"].values():
+            system["reference_colour_spread"] = spread
     unit = json.loads((ROOT / "bench/synthetic/2026-11-26.json").read_text())
     text = results_md.systems_markdown([(Path("a.json"), mm), (Path("b.json"), unit), (Path("c.json"), other_mm)], ROOT)
     headers = [line for line in text.splitlines() if line.startswith("| scene |")]
@@ -123,6 +135,9 @@ def test_scenes_in_the_same_units_share_one_table():
     notes = [line for line in text.splitlines() if line[:1].isdigit()]
     assert any(n.split(". ", 1)[1].startswith("synthetic: Chamfer against the exact surface") for n in notes)
     assert any(n.split(". ", 1)[1].startswith("scan24, scan24_idr: Chamfer against the mesh") for n in notes)
+    # the references' colour spreads, different per scene, share one footnote
+    spread_notes = [n.split(". ", 1)[1] for n in notes if "own colour spread" in n]
+    assert spread_notes == ["The reference surface's own colour spread: scan24 0.0600, scan24_idr 0.0500."]
     assert any(n.split(". ", 1)[1].startswith("Mean ± std over the seeds") for n in notes)
 
 
