@@ -578,6 +578,12 @@ def stage_system_table(result: dict) -> str:
     return markdown_table([f"stage ({what})", *(s["label"] for s in systems)], rows)
 
 
+def reference_colour_spread(result: dict) -> float | None:
+    """The colour spread of the scene's reference surface (the GT-pose NeuS on DTU), None where it has none."""
+    return next((s["reference_colour_spread"] for s in result["systems"].values()
+                 if is_number(s.get("reference_colour_spread"))), None)
+
+
 def notes(result: dict, definitions: bool = True, reference_spread: bool = True) -> list[str]:
     """Footnotes that say how the systems table was measured; without `definitions`, only those that
     depend on the result (docs/BENCHMARKS.md defines the pose errors, the ratios, the memory and the colour spread);
@@ -615,15 +621,15 @@ def notes(result: dict, definitions: bool = True, reference_spread: bool = True)
     if chamfer_refs:
         out.append(f"Chamfer against the {'; '.join(sorted(chamfer_refs))}. pycolmap makes a sparse model, "
                    "no surface and no renderings; NeuS-COLMAP is NeuS trained on its poses.")
-    spreads = [s["reference_colour_spread"] for s in systems.values() if is_number(s.get("reference_colour_spread"))]
+    spread = reference_colour_spread(result)
     if any(is_number(s.get("colour_spread")) for s in systems.values()):
         if definitions:
             out.append("Colour spread: the median over the mesh's points of the grey level's standard deviation across "
                        "the views that see them, at the images' own size under the ground-truth cameras (lower is "
                        "better; blind to textureless surfaces), a check that needs no masks and no reference"
-                       + (f"; the reference surface's own: {spreads[0]:.4f}." if spreads else "."))
-        elif spreads and reference_spread:
-            out.append(f"The reference surface's own colour spread: {spreads[0]:.4f}.")
+                       + (f"; the reference surface's own: {spread:.4f}." if spread is not None else "."))
+        elif spread is not None and reference_spread:
+            out.append(f"The reference surface's own colour spread: {spread:.4f}.")
     rendered = [s for s in systems.values() if "psnr" in s]
     if rendered:
         masked = "masked (background zeroed)" if all(s["images_masked"] for s in rendered) else "unmasked"

@@ -210,8 +210,8 @@ def pm(s: dict, spec: str = ".3f") -> str:
     return f"{s['mean']:{spec}} ± {s['std']:{spec}}" if s["n"] > 1 else f"{s['mean']:{spec}}"
 
 
-def markdown(result: dict, detail: bool = True) -> str:
-    """The table of every scene; with `detail`, each scene's rounds and its targets per seed."""
+def markdown(result: dict) -> str:
+    """The table of every scene, then each scene's rounds and its targets per seed."""
     header = ["scene", "seeds", "init (anchors) deg", "placement deg", "final deg", "sfm-all deg", "pycolmap deg",
               "final centre", "sfm-all centre", "pycolmap centre", "last round: views keeping their update", "masked PSNR dB", "aligned", "GT-pose PSNR dB (equal iters)", "aligned",
               "sfm-all + NeuS PSNR dB (equal iters)", "aligned", "Chamfer", "sfm-all + NeuS Chamfer",
@@ -229,8 +229,6 @@ def markdown(result: dict, detail: bool = True) -> str:
                      pm(s["sfm_all_psnr_masked_aligned"], ".2f"), pm(s["chamfer"], ".3g"), pm(s["sfm_all_chamfer"], ".3g"),
                      pm(s["wall_seconds"], ".0f")])
     parts = [bench.markdown_table(header, rows)]
-    if not detail:
-        return parts[0]
     for scene, sc in result["scenes"].items():
         per = sc["summary"]["per_round"]
         parts.append(f"{scene}, per round (mean rotation error of the round's views, deg: start -> end): " + "; ".join(

@@ -215,7 +215,7 @@ def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
             scenes_of.setdefault(n, []).append(result["scene"])
     everywhere = {r["scene"] for _, r in shown}
     notes = [n if set(sc) == everywhere else f"{', '.join(sc)}: {n}" for n, sc in scenes_of.items()]
-    spreads = {r["scene"]: spread for _, r in shown if (spread := reference_spread(r)) is not None}
+    spreads = {r["scene"]: spread for _, r in shown if (spread := bench.reference_colour_spread(r)) is not None}
     if spreads:  # one note for every scene's reference, not one each
         notes.append("The reference surface's own colour spread: "
                      + ", ".join(f"{scene} {v:.4f}" for scene, v in spreads.items()) + ".")
@@ -224,12 +224,6 @@ def systems_markdown(shown: list[tuple[Path, dict]], root: Path) -> str:
     footnotes = "\n".join(f"{i}. {n}" for i, n in enumerate(notes, 1))
     checked = "\n".join(f"- {line}" for _, result in shown if (line := bench.targets_markdown(result)))
     return " ".join(lines) + f"\n\n{table}\n\n{footnotes}" + (f"\n\n{checked}" if checked else "")
-
-
-def reference_spread(result: dict) -> float | None:
-    """The colour spread of the scene's reference surface (the GT-pose NeuS on DTU), None where it has none."""
-    return next((s["reference_colour_spread"] for s in result["systems"].values()
-                 if bench.is_number(s.get("reference_colour_spread"))), None)
 
 
 def results_markdown(bench_dir: Path, root: Path = bench.ROOT) -> str:
@@ -313,22 +307,22 @@ def main(argv=None) -> int:
     ap.add_argument("--bench-dir", type=Path, default=bench.DEFAULT_OUT_DIR)
     ap.add_argument("--check", action="store_true", help="write nothing; exit 1 if a page is out of date")
     args = ap.parse_args(argv)
-    stale = False
+    pages = {}  # path -> (old, new): both rendered before either is written
     for path, render in ((args.readme, render_readme), (args.refinement_doc, render_refinement_doc)):
         old = path.read_text()
         try:
-            new = render(old, args.bench_dir)
+            pages[path] = old, render(old, args.bench_dir)
         except ValueError as e:
             print(f"error: {path}: {e}", file=sys.stderr)
             return 2
-        stale |= new != old
+    for path, (old, new) in pages.items():
         if args.check:
             print(f"{path}: results {'out of date: run `make results`' if new != old else 'up to date'}")
         else:
             if new != old:
                 path.write_text(new)
             print(f"{path}: results {'updated' if new != old else 'unchanged'}")
-    return 1 if args.check and stale else 0
+    return 1 if args.check and any(old != new for old, new in pages.values()) else 0
 
 
 if __name__ == "__main__":
