@@ -42,3 +42,17 @@ def test_nothing_to_score(scene):
     beyond = level_set(0.0)
     beyond.apply_translation([0.0, 0.0, 100.0])  # far outside every view
     assert spread(beyond, scene) is None
+
+
+def test_splats_scaled_to_the_images_score_as_a_denser_z_buffer_does(scene):
+    """16 samples per pixel of the largest image (262 k here instead of the 2 M cap) fill each view's z-buffer:
+    four times as many change what is scored by less than a percent."""
+    grey, mesh = photo_consistency.grey_levels(scene.images), level_set(0.0)
+    default, dense = (photo_consistency.colour_spread(mesh, grey, scene.K, scene.w2c, depth_tolerance=0.005,
+                                                      n_points=20000, splats_per_pixel=n) for n in (16, 64))
+    assert default["median"] == pytest.approx(dense["median"], rel=0.01)
+    assert default["share_scored"] == pytest.approx(dense["share_scored"], abs=0.01)
+    sparse = photo_consistency.colour_spread(mesh, grey, scene.K, scene.w2c, depth_tolerance=0.005, n_points=20000,
+                                             splats_per_pixel=0.25)
+    # too few: holes in the z-buffers let hidden points through, each reading another surface's texture
+    assert sparse["median"] > 1.05 * default["median"] and sparse["share_scored"] > default["share_scored"]

@@ -33,20 +33,25 @@ def _depth_buffer(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) -> np.
 
 
 def colour_spread(mesh, images, K: np.ndarray, w2c: np.ndarray, *, depth_tolerance: float, n_points: int = 50000,
-                  splat_points: int = 2_000_000, min_views: int = 4, min_facing: float = 0.5, seed: int = 0) -> dict:
+                  splat_points: int = 2_000_000, splats_per_pixel: float = 16, min_views: int = 4,
+                  min_facing: float = 0.5, seed: int = 0) -> dict:
     """The colour spread of ``mesh`` (a trimesh) seen by the views ``images`` (N grey images [H,W] in
     [0,1], sizes may differ), ``K`` [N,3,3] and ``w2c`` [N,4,4]. A point is seen by a view that it faces
     (cosine above ``min_facing``), whose frame holds it and whose depth buffer it is within
     ``depth_tolerance`` (scene units) plus two pixels' width of; points seen by fewer than ``min_views``
     views are left out.
     Returns ``median`` and ``mean`` spread, ``p90``, and ``share_scored`` (the share of the points
-    kept); None where the mesh is empty or no point is seen often enough."""
+    kept); None where the mesh is empty or no point is seen often enough.
+    The z-buffers splat ``splats_per_pixel`` surface samples per pixel of the largest image, at most
+    ``splat_points``: enough that every pixel the surface covers receives one (DTU's images reach the
+    cap; a 192-px synthetic view needs a quarter of it)."""
     import trimesh
     from scipy.ndimage import map_coordinates
 
     if mesh is None or len(mesh.faces) == 0:
         return None
-    dense = np.asarray(trimesh.sample.sample_surface(mesh, splat_points, seed=seed + 1)[0])  # [D,3] the z-buffers'
+    n_splats = min(splat_points, int(splats_per_pixel * max(image.shape[0] * image.shape[1] for image in images)))
+    dense = np.asarray(trimesh.sample.sample_surface(mesh, n_splats, seed=seed + 1)[0])  # [D,3] the z-buffers'
     points, faces = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
     points, normals = np.asarray(points), np.asarray(mesh.face_normals[faces])  # [P,3] each
     grey = np.full((len(images), len(points)), np.nan, np.float32)  # [N,P]
