@@ -44,7 +44,7 @@ def colour_spread(mesh, images, K: np.ndarray, w2c: np.ndarray, *, depth_toleran
     kept); None where the mesh is empty or no point is seen often enough.
     The z-buffers splat ``splats_per_pixel`` surface samples per pixel of the largest image, at most
     ``splat_points``: enough that every pixel the surface covers receives one (DTU's images reach the
-    cap; a 192-px synthetic view needs a quarter of it)."""
+    cap; a 192-px synthetic view needs under a third of it)."""
     import trimesh
     from scipy.ndimage import map_coordinates
 
