@@ -5,10 +5,14 @@ The rounds fit their field on growing subsets of the views while the poses move:
 views formed stays in it (docs/REFINEMENT.md). Once the poses are decided, a field trained on all views
 at once (``surface.start = fresh``: a new field, its grid box fitted to every view's visual hull or
 common frustum) gives the surface NeuS gives on the same poses. Without masks its frame is scaled down to
-hold the object's whole extent well inside the sphere (``surface.extent_radius``). Writes the same files as a round
-(:func:`manifoldneus.posefree.save_round`'s layout): ``poses.zarr`` (the last round's, unchanged),
-``model.pt``, ``round.json`` (this training's summary); with ``surface.iters = 0`` the last round's
-field is the surface (copied).
+hold the object's whole extent well inside the sphere (``surface.extent_radius``), and it can make masks of its
+own from the photos and the last round's SfM tracks (``surface.photo_masks``,
+:mod:`manifoldneus.geometry.segmentation`), which the field then follows where the views agree. Writes the same
+files as a round (:func:`manifoldneus.posefree.save_round`'s layout): ``poses.zarr`` (the last round's,
+unchanged), ``model.pt``, ``round.json`` (this training's summary), and where it made masks ``photo_masks.zarr``
+(``masks`` GrabCut's and ``voted`` the views' vote [V,H,W], of the views ``views`` [V]) with
+``photo_masks.png`` (a few views, the pixels the masks decide tinted); with ``surface.iters = 0`` the last
+round's field is the surface (copied).
 """
 from __future__ import annotations
 
@@ -20,7 +24,7 @@ import numpy as np
 import torch
 
 from manifoldneus.data import artifacts, io
-from manifoldneus.geometry import cameras, object_region
+from manifoldneus.geometry import cameras, object_region, segmentation
 from manifoldneus import posefree
 from manifoldneus.config import ParamError, param
 from manifoldneus.neural.train import Trainer, TrainRun
@@ -42,6 +46,17 @@ class Params:
                       "from, sfm-all's own: where the round kept none of its views' updates, NeuS on sfm-all's poses "
                       "to the bit; the gauge refitted to the round's tracks where it placed none from the SfM) or "
                       "rounds (that refit in the anchors' SfM's axes)", choices=["sfm", "rounds"])
+    photo_masks: bool = param(False, "Without the layout's masks: segment each posed view by GrabCut seeded by the "
+                              "last round's SfM tracks (the object's points foreground; its support's and those "
+                              "outside its region background), let the views vote on them, and train the field "
+                              "towards them (loss.w_photo_mask) where a view's mask and the vote agree")
+    photo_mask_band: int = param(25, "photo_masks: how far (pixels of the ingest's images) beyond the convex hull of "
+                                 "the object's SfM points GrabCut may extend the object: its textureless parts that "
+                                 "no point reaches", lo=1)
+    photo_mask_vote: float = param(0.9, "photo_masks: the share of the views holding a point in their frame that "
+                                   "must have it inside their mask for the vote to keep it", lo=0.5, hi=1.0)
+    photo_mask_erode: int = param(4, "photo_masks: the pixels (of the ingest's images) each decided region shrinks "
+                                  "by, away from the masks' edges", lo=0)
     extent_radius: float = param(0.6, "Without masks (frame = views), the field's frame is scaled down until the "
                                  "object's whole extent (the 99th percentile of the distances of the SfM points in "
                                  "the anchors' object region that extent_min_seen of the views see) lies within this "
@@ -59,8 +74,10 @@ class Params:
 
 UPSTREAM = ("ingest", "anchors", "successors")
 SECTIONS = ("surface", "train", "field", "render", "loss", "run", "anchors.gauge_radius", "anchors.gauge_percentile",
-            "anchors.gauge_centre", "anchors.object_min_seen")
+            "anchors.gauge_centre", "anchors.object_min_seen", "meshing.support_margin")
 OUTPUTS = (artifacts.POSES, artifacts.MODEL, artifacts.ROUND_META)
+PHOTO_MASKS = "photo_masks.zarr"
+PHOTO_MASKS_PLOT = "photo_masks.png"
 
 
 def field_frame(result: dict, views, ids: np.ndarray, anchors_p, axes: str = "sfm") -> np.ndarray:
@@ -108,6 +125,33 @@ def extent_scale(points: np.ndarray, seen: np.ndarray, region: object_region.Obj
     return min(1.0, radius / float(np.percentile(np.linalg.norm(points[keep], axis=1), 99)))
 
 
+def photo_labels(ctx, views, result: dict, ids: np.ndarray) -> np.ndarray:
+    """[N,H,W] float32 object labels of every view (0.5 where undecided, and in the views ``ids`` leaves out) from
+    masks made from the photos (module doc); saves them and their picture."""
+    p: Params = ctx.params
+    min_seen = ctx.section("anchors").object_min_seen
+    w2c, sizes = result["w2c"], views.view_sizes
+    # the region and its support refitted to the final round's tracks over every posed view: the anchors' plane,
+    # fitted to their few views' points, can lie a few % of the radius off them
+    region, obj = object_region.locate(result["track_points"], views.K[ids], w2c[ids], sizes[ids], min_seen)
+    masks = segmentation.object_masks(views.images, sizes, views.K, w2c, ids, result, region, min_seen,
+                                      ctx.section("meshing").support_margin, p.photo_mask_band,
+                                      progress=lambda it: ctx.progress(it, desc="masks from the photos"))  # [V,H,W]
+    voted = segmentation.vote_masks(masks, views.K[ids], w2c[ids], sizes[ids], result["track_points"][obj],
+                                    agree=p.photo_mask_vote)
+    io.save_arrays(ctx.out / PHOTO_MASKS, {"masks": masks, "voted": voted, "views": ids})
+    labels = np.full((views.n, *masks.shape[1:]), 0.5, np.float32)
+    labels[ids] = segmentation.object_labels(masks, voted, p.photo_mask_erode)
+    io.save_png(ctx.out / PHOTO_MASKS_PLOT, segmentation.labels_picture(views.images[ids], labels[ids]))
+    disputed = 1 - (masks == voted).mean()
+    ctx.log.info("masks from the photos: %.1f %% of the posed views' pixels the object's, %.1f %% the background's, "
+                 "%.1f %% disputed by the vote (support %s)", 100 * (labels[ids] == 1).mean(),
+                 100 * (labels[ids] == 0).mean(), 100 * disputed, "found" if region.plane is not None else "none found")
+    ctx.metrics.update(photo_mask_object=round(float((labels[ids] == 1).mean()), 4),
+                       photo_mask_disputed=round(float(disputed), 4))
+    return labels
+
+
 def run(ctx) -> None:
     p: Params = ctx.params
     final = ctx.input("successors") / artifacts.FINAL_ROUND
@@ -120,6 +164,8 @@ def run(ctx) -> None:
     result = artifacts.load_round(final)
     views = artifacts.load_views(ctx.input("ingest"), None, result["K"], result.get("distortion"))
     ids = np.flatnonzero(result["optimised"].astype(bool))
+    if p.photo_masks and views.masks is None and result.get("track_points") is not None:
+        views.object_labels = photo_labels(ctx, views, result, ids)
     G = np.eye(4) if p.frame == "rounds" else field_frame(result, views, ids, ctx.section("anchors"), p.axes)
     if p.frame == "views" and views.masks is None and result.get("track_points") is not None:
         found = io.load_json(ctx.input("anchors") / artifacts.ANCHOR_ROUND / artifacts.ROUND_META)["init"].get(

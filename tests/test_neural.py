@@ -261,6 +261,22 @@ def test_loss_switches():
     assert terms2["depth"] < 1e-8 and terms2["normal"] < 1e-5
     _, terms3, status3 = compute_losses(out, full, LossParams(w_mask=0.0))
     assert "mask" not in terms3 and status3["mask"] == "off: weight 0"
+    assert status["photo_mask"] == "off: no masks from the photos"
+
+
+def test_photo_masks_count_only_the_pixels_they_decide():
+    """The photo-mask term is the mask BCE on the rays labelled 1 or 0, the undecided ones (0.5, and the blurred
+    values between) left out, whatever the field renders there."""
+    op = torch.tensor([0.9, 0.2, 0.7, 0.6])
+    label = torch.tensor([1.0, 0.0, 0.5, 0.75])
+    out = {"rgb": torch.zeros(4, 3), "opacity": op}
+    batch = {"rgb": torch.zeros(4, 3), "object_label": label}
+    _, terms, status = compute_losses(out, batch, LossParams())
+    expected = -(torch.log(op[0]) + torch.log1p(-op[1])) / 2
+    assert status["photo_mask"] == "on" and terms["photo_mask"] == pytest.approx(float(expected), rel=1e-5)
+    assert status["mask"] == "off: no masks"  # the layout's mask term and its rgb restriction stay off
+    batch["object_label"] = torch.full((4,), 0.5)
+    assert compute_losses(out, batch, LossParams())[1]["photo_mask"] == 0.0
 
 
 def synthetic_views(n=8, size=24):
@@ -853,3 +869,22 @@ def test_views_of_several_sizes_resize_each_to_its_own_size():
     assert np.allclose(v.images[1, :15], 100 / 255) and not v.images[1, 15:].any()
     np.testing.assert_allclose(v.K[1], [[25, 0, 15], [0, 25, 7.5], [0, 0, 1]])
     assert not v.one_size and Views(images[:1], K[:1], np.eye(4)[None], sizes=sizes[:1]).one_size
+
+
+def test_object_labels_follow_the_views_through_subsets_and_resizing():
+    """Views.object_labels are picked with their views and resampled as the images are: their edges blur into
+    values between 0 and 1 (undecided for the loss), and each view of several sizes keeps to its own pixels."""
+    from manifoldneus.data.views import on_canvas
+
+    labels = np.full((3, 40, 60), 0.5, np.float32)
+    labels[:, :, :20], labels[:, :, 40:] = 1.0, 0.0
+    images = np.zeros((3, 40, 60, 3), np.uint8)
+    K = np.tile(np.array([[50.0, 0, 30], [0, 50, 20], [0, 0, 1]]), (3, 1, 1))
+    v = Views(images, K, np.tile(np.eye(4), (3, 1, 1)), names=["a", "b", "c"], object_labels=labels)
+    v = v.subset([2, 0], np.tile(np.eye(4), (3, 1, 1)))
+    small = v.resized(30)
+    assert small.object_labels.shape == (2, 20, 30)
+    assert (small.object_labels[:, :, :10] == 1).all() and (small.object_labels[:, :, 20:] == 0).all()
+    imgs, sizes = on_canvas([np.zeros((40, 60, 3), np.uint8), np.zeros((30, 60, 3), np.uint8)])
+    each = Views(imgs, K[:2], np.tile(np.eye(4), (2, 1, 1)), sizes=sizes, object_labels=labels[:2]).resized(30)
+    assert each.object_labels.shape == (2, 20, 30) and not each.object_labels[1, 15:].any()

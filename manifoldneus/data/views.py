@@ -51,6 +51,9 @@ class Views:
     mono_normal: np.ndarray | None = None
     names: list = field(default_factory=list)
     sizes: np.ndarray | None = None  # [N,2] (H, W) of each view's own pixels on the canvas; None: all one size
+    # [N,H,W] float32, masks made from the photos (runs without the layout's): 1 the object, 0 the background,
+    # 0.5 undecided; resampled like depth, so the pixels their edges blur into read as undecided too
+    object_labels: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -78,7 +81,7 @@ class Views:
             return None if a is None else a[ids]
 
         return Views(self.images[ids], self.K[ids], w2c_all[ids], pick(self.masks), pick(self.mono_depth),
-                     pick(self.mono_normal), [self.names[i] for i in ids], pick(self.sizes))
+                     pick(self.mono_normal), [self.names[i] for i in ids], pick(self.sizes), pick(self.object_labels))
 
     def resized(self, size: int) -> "Views":
         """Downscale (area filter) so the longest side is ``size``; K follows (pixel-centre
@@ -110,7 +113,8 @@ class Views:
         if self.mono_normal is not None:
             normal = rs(self.mono_normal.astype(np.float32))
             normal /= np.linalg.norm(normal, axis=-1, keepdims=True).clip(1e-8)
-        return Views(imgs, K, np.array(self.w2c), masks, depth, normal, list(self.names))
+        labels = None if self.object_labels is None else rs(self.object_labels.astype(np.float32))
+        return Views(imgs, K, np.array(self.w2c), masks, depth, normal, list(self.names), object_labels=labels)
 
     def _resized_each(self, s: float) -> "Views":
         """:meth:`resized` of views of several sizes, each by the factor ``s`` (module doc)."""
@@ -133,7 +137,7 @@ class Views:
         if normal is not None:
             normal /= np.linalg.norm(normal, axis=-1, keepdims=True).clip(1e-8)
         return Views(rs(self.images, 255.0 if self.images.dtype == np.uint8 else 1.0), K, np.array(self.w2c), masks,
-                     rs(self.mono_depth), normal, list(self.names), new)
+                     rs(self.mono_depth), normal, list(self.names), new, rs(self.object_labels))
 
     def undistorted(self, distortion: np.ndarray | None) -> "Views":
         """The views with each one's lens ``distortion`` [N,4] (OpenCV's model, see
@@ -151,7 +155,8 @@ class Views:
                              for a, k, d in zip(stack, self.K, distortion)])
 
         return Views(each(self.images), np.array(self.K), np.array(self.w2c), each(self.masks, nearest=True),
-                     each(self.mono_depth), each(self.mono_normal), list(self.names), self.sizes)
+                     each(self.mono_depth), each(self.mono_normal), list(self.names), self.sizes,
+                     each(self.object_labels))
 
     def float_images(self) -> np.ndarray:
         im = self.images

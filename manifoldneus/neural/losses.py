@@ -5,6 +5,8 @@ reports which terms were on (and why the others were off).
 * rgb: L1 between rendered and observed colour (on foreground rays only when masks exist).
 * eikonal: mean (|grad f| - 1)^2.
 * mask: BCE between the rendered opacity and the foreground mask.
+* photo_mask: the same BCE against masks made from the photos (runs without masks), on the pixels they
+  decide only (:mod:`manifoldneus.geometry.segmentation`); the rgb term and the background stay as without masks.
 * depth: monocular depth, scale-and-shift invariant: per view in the batch, (a, b) minimising
   sum (a * d_mono + b - d_render)^2 (closed-form least squares, no gradient through a, b), then the
   mean squared residual (MonoSDF aligns per image the same way; here the prior is aligned to the
@@ -30,6 +32,9 @@ class LossParams:
     w_rgb: float = param(1.0, "Photometric L1 weight", lo=0.0)
     w_eikonal: float = param(0.1, "Eikonal weight", lo=0.0)
     w_mask: float = param(0.1, "Mask BCE weight (used only when masks exist)", lo=0.0)
+    w_photo_mask: float = param(0.1, "Without the layout's masks: BCE between the rendered opacity and the masks the "
+                                "surface stage made from the photos (surface.photo_masks), on the pixels they decide "
+                                "only (the object's, 1, or the background's, 0)", lo=0.0)
     w_depth: float = param(0.1, "Monocular depth weight (scale-and-shift invariant; only with depth priors)", lo=0.0)
     w_normal: float = param(0.05, "Monocular normal weight (L1 + 1 - cos, camera frame; only with normal priors)", lo=0.0)
     depth_min_rays: int = param(8, "Minimum valid rays of a view in the batch to fit its depth scale/shift", lo=3)
@@ -41,7 +46,8 @@ class LossParams:
                               lo=0.0)
 
 
-LOSS_NAMES = ("rgb", "eikonal", "mask", "depth", "normal")
+LOSS_NAMES = ("rgb", "eikonal", "mask", "photo_mask", "depth", "normal")
+DECIDED = 0.4  # an object label decides a pixel where it lies this close to 0 or 1 (0.5: undecided)
 
 
 def ssi_depth_loss(d_render, d_mono, view, valid, min_rays: int = 8):
@@ -125,6 +131,19 @@ def compute_losses(out: dict, batch: dict, p: LossParams, host: bool = True):
         else:  # the same BCE without torch's range check of the input: a host read, and on NaN an error, not a NaN
             terms["mask"] = -(m * torch.log(op) + (1.0 - m) * torch.log1p(-op)).mean()
         status["mask"] = "on"
+    # photo masks: only where they decide, so a view whose segmentation the others dispute neither carves nor fills
+    label = batch.get("object_label")
+    if label is None:
+        off("photo_mask", "no masks from the photos")
+    elif p.w_photo_mask <= 0:
+        off("photo_mask", "weight 0")
+    else:
+        op = out["opacity"].clamp(1e-3, 1 - 1e-3)
+        decided = ((label - 0.5).abs() > DECIDED).to(op.dtype)
+        target = (label > 0.5).to(op.dtype)
+        bce = -(target * torch.log(op) + (1.0 - target) * torch.log1p(-op))
+        terms["photo_mask"] = (bce * decided).sum() / decided.sum().clamp_min(1.0)
+        status["photo_mask"] = "on"
     # where geometric priors apply
     fg = mask if mask is not None else torch.ones_like(out["opacity"], dtype=torch.bool)
     # depth
@@ -157,7 +176,8 @@ def compute_losses(out: dict, batch: dict, p: LossParams, host: bool = True):
         else:
             terms["normal"] = loss
             status["normal"] = "on"
-    weights = {"rgb": p.w_rgb, "eikonal": p.w_eikonal, "mask": p.w_mask, "depth": p.w_depth, "normal": p.w_normal}
+    weights = {"rgb": p.w_rgb, "eikonal": p.w_eikonal, "mask": p.w_mask, "photo_mask": p.w_photo_mask,
+               "depth": p.w_depth, "normal": p.w_normal}
     total = sum(weights[k] * v for k, v in terms.items())
     return total, {k: float(v.detach()) if host else v.detach() for k, v in terms.items()}, status
 

@@ -262,6 +262,8 @@ class Trainer:
         self.K = torch.as_tensor(v.K, dtype=torch.float32, device=dev)
         self.w2c_init = torch.as_tensor(np.asarray(v.w2c)[:, :3, :4], dtype=torch.float32, device=dev)
         self.masks = None if v.masks is None else torch.as_tensor(v.masks.reshape(v.n, H * W), device=dev)
+        self.object_labels = None if v.object_labels is None else torch.as_tensor(
+            v.object_labels.reshape(v.n, H * W), dtype=torch.float32, device=dev)
         self.mono_depth = None if v.mono_depth is None else torch.as_tensor(v.mono_depth.reshape(v.n, H * W), device=dev)
         self.mono_normal = None if v.mono_normal is None else torch.as_tensor(
             v.mono_normal.reshape(v.n, H * W, 3), device=dev)
@@ -422,6 +424,7 @@ class Trainer:
         o, d = camera_rays(cols, rows, self.K[view], w2c)
         b = {"view": view, "pix": pix, "o": o, "d": d, "rgb": self.images[view, pix], "R_w2c": w2c[:, :3, :3]}
         b["mask"] = None if self.masks is None else self.masks[view, pix]
+        b["object_label"] = None if self.object_labels is None else self.object_labels[view, pix]
         b["mono_depth"] = None if self.mono_depth is None else self.mono_depth[view, pix]
         b["mono_normal"] = None if self.mono_normal is None else self.mono_normal[view, pix]
         return b
