@@ -118,32 +118,23 @@ def compute_losses(out: dict, batch: dict, p: LossParams, host: bool = True):
         status["eikonal"] = "on"
     else:
         off("eikonal", "weight 0" if p.w_eikonal <= 0 else "no gradients")
-    # mask
-    if mask is None:
-        off("mask", "no masks")
-    elif p.w_mask <= 0:
-        off("mask", "weight 0")
-    else:
-        op = out["opacity"].clamp(1e-3, 1 - 1e-3)
-        m = mask.to(op.dtype)
-        if host:
-            terms["mask"] = F.binary_cross_entropy(op, m)
-        else:  # the same BCE without torch's range check of the input: a host read, and on NaN an error, not a NaN
-            terms["mask"] = -(m * torch.log(op) + (1.0 - m) * torch.log1p(-op)).mean()
-        status["mask"] = "on"
-    # photo masks: only where they decide, so a view whose segmentation the others dispute neither carves nor fills
+    # the masks, the layout's or those made from the photos; the latter only where they decide, so that a view whose
+    # segmentation the other views dispute neither carves nor fills
     label = batch.get("object_label")
-    if label is None:
-        off("photo_mask", "no masks from the photos")
-    elif p.w_photo_mask <= 0:
-        off("photo_mask", "weight 0")
-    else:
+    for name, given, weight, absent in (("mask", mask, p.w_mask, "no masks"),
+                                        ("photo_mask", label, p.w_photo_mask, "no masks from the photos")):
+        if given is None or weight <= 0:
+            off(name, absent if given is None else "weight 0")
+            continue
         op = out["opacity"].clamp(1e-3, 1 - 1e-3)
-        decided = ((label - 0.5).abs() > DECIDED).to(op.dtype)
-        target = (label > 0.5).to(op.dtype)
-        bce = -(target * torch.log(op) + (1.0 - target) * torch.log1p(-op))
-        terms["photo_mask"] = (bce * decided).sum() / decided.sum().clamp_min(1.0)
-        status["photo_mask"] = "on"
+        target = given.to(op.dtype) if name == "mask" else (given > 0.5).to(op.dtype)
+        if name == "mask" and host:
+            terms[name] = F.binary_cross_entropy(op, target)
+        else:  # the same BCE without torch's range check of the input: a host read, and on NaN an error, not a NaN
+            bce = -(target * torch.log(op) + (1.0 - target) * torch.log1p(-op))
+            decided = None if name == "mask" else ((given - 0.5).abs() > DECIDED).to(op.dtype)
+            terms[name] = bce.mean() if decided is None else (bce * decided).sum() / decided.sum().clamp_min(1.0)
+        status[name] = "on"
     # where geometric priors apply
     fg = mask if mask is not None else torch.ones_like(out["opacity"], dtype=torch.bool)
     # depth
