@@ -55,6 +55,10 @@ class Params:
                                  "no point reaches", lo=1)
     photo_mask_vote: float = param(0.9, "photo_masks: the share of the views holding a point in their frame that "
                                    "must have it inside their mask for the vote to keep it", lo=0.5, hi=1.0)
+    photo_mask_fill: bool = param(False, "photo_masks: also train towards the object where a view's mask and the vote "
+                                  "both hold it; off: only the background they agree on is carved (both hold the "
+                                  "holes and concavities the object's outline spans: the synthetic torus's hole "
+                                  "grew surface, Chamfer 0.0124 against 0.0108 without photo masks)")
     photo_mask_erode: int = param(4, "photo_masks: the pixels (of the ingest's images) each decided region shrinks "
                                   "by, away from the masks' edges", lo=0)
     extent_radius: float = param(0.6, "Without masks (frame = views), the field's frame is scaled down until the "
@@ -141,7 +145,7 @@ def photo_labels(ctx, views, result: dict, ids: np.ndarray) -> np.ndarray:
                                     agree=p.photo_mask_vote)
     io.save_arrays(ctx.out / PHOTO_MASKS, {"masks": masks, "voted": voted, "views": ids})
     labels = np.full((views.n, *masks.shape[1:]), 0.5, np.float32)
-    labels[ids] = segmentation.object_labels(masks, voted, p.photo_mask_erode)
+    labels[ids] = segmentation.object_labels(masks, voted, p.photo_mask_erode, p.photo_mask_fill)
     io.save_png(ctx.out / PHOTO_MASKS_PLOT, segmentation.labels_picture(views.images[ids], labels[ids]))
     disputed = 1 - (masks == voted).mean()
     ctx.log.info("masks from the photos: %.1f %% of the posed views' pixels the object's, %.1f %% the background's, "

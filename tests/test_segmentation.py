@@ -105,8 +105,10 @@ def test_the_vote_leaves_a_views_wrong_mask_undecided_and_decides_the_rest(scene
     points = tracks["track_points"][:600]  # the object's
     voted = segmentation.vote_masks(wrong, K, w2c, sizes, points, resolution=96, agree=0.8)  # 1 of 7 views may err
     assert voted[0][missed].mean() > 0.9 and not voted[1][patch].any()
-    labels = segmentation.object_labels(wrong, voted, erode=2)
+    labels = segmentation.object_labels(wrong, voted, erode=2, fill=True)
     assert labels.dtype == np.float32 and set(np.unique(labels)) <= {0.0, 0.5, 1.0}
+    carve_only = segmentation.object_labels(wrong, voted, erode=2)
+    assert not (carve_only == 1).any() and np.array_equal(carve_only == 0, labels == 0)
     assert (labels[0][missed] == 0.5).mean() > 0.9 and (labels[1][patch] == 0.5).all()
     decided = labels != 0.5
     agree = (labels == 1) == masks

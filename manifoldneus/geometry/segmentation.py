@@ -18,7 +18,8 @@ GrabCut errs in a few views (a white top on a white table left out, a patch of b
 field trained on such masks as if they were the layout's carves the object or grows the background into
 surface. So the views vote (:func:`vote_masks`: a voxel is the object's where nearly all the views that hold it
 have it inside their mask, and its projection is each view's share of the vote), and :func:`object_labels`
-decides only the pixels where a view's own mask and the vote agree; the rest are left to the photos.
+decides only the pixels where a view's own mask and the vote agree (by default only that they are background);
+the rest are left to the photos.
 """
 from __future__ import annotations
 
@@ -151,14 +152,15 @@ def _pixels(X: np.ndarray, K: np.ndarray, w2c: np.ndarray, size) -> tuple[np.nda
     return np.where(ok, u, 0), np.where(ok, v, 0), ok
 
 
-def object_labels(masks: np.ndarray, voted: np.ndarray, erode: int) -> np.ndarray:
-    """float32 [V,H,W]: 1 where a view's mask and the views' vote (:func:`vote_masks`) both hold the object, 0
-    where neither does, each region shrunk by ``erode`` pixels (the masks' edges are the least sure); 0.5
-    (undecided) between."""
+def object_labels(masks: np.ndarray, voted: np.ndarray, erode: int, fill: bool = False) -> np.ndarray:
+    """float32 [V,H,W]: 0 where neither a view's mask nor the views' vote (:func:`vote_masks`) holds the object,
+    with ``fill`` 1 where both do, each region shrunk by ``erode`` pixels (the masks' edges are the least sure);
+    0.5 (undecided) elsewhere. Both can hold what is not the object: a hole or a concavity the object's convex
+    outline spans (the synthetic torus's hole), so filling is the riskier half."""
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1, 2 * erode + 1)) if erode > 0 else None
     out = np.full(masks.shape, 0.5, np.float32)
     for i, (m, vote) in enumerate(zip(masks, voted)):
-        for region, value in ((m & vote, 1.0), (~m & ~vote, 0.0)):
+        for region, value in [(~m & ~vote, 0.0)] + ([(m & vote, 1.0)] if fill else []):
             r = region.astype(np.uint8)
             if kernel is not None:
                 r = cv2.erode(r, kernel)
