@@ -151,7 +151,8 @@ def photo_labels(ctx, views, result: dict, ids: np.ndarray) -> np.ndarray:
     ctx.log.info("masks from the photos: %.1f %% of the posed views' pixels the object's, %.1f %% the background's, "
                  "%.1f %% disputed by the vote (support %s)", 100 * (labels[ids] == 1).mean(),
                  100 * (labels[ids] == 0).mean(), 100 * disputed, "found" if region.plane is not None else "none found")
-    ctx.metrics.update(photo_mask_object=round(float((labels[ids] == 1).mean()), 4),
+    ctx.metrics.update(photo_mask_background=round(float((labels[ids] == 0).mean()), 4),
+                       photo_mask_object=round(float((labels[ids] == 1).mean()), 4),
                        photo_mask_disputed=round(float(disputed), 4))
     return labels
 
