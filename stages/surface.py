@@ -53,6 +53,8 @@ class Params:
     photo_mask_band: int = param(25, "photo_masks: how far (pixels of the ingest's images) beyond the convex hull of "
                                  "the object's SfM points GrabCut may extend the object: its textureless parts that "
                                  "no point reaches", lo=1)
+    photo_mask_support: float = param(0.02, "photo_masks: SfM points less than this (of the object region's radius) "
+                                      "above its support plane are the support's, background seeds", lo=0.0)
     photo_mask_vote: float = param(0.9, "photo_masks: the share of the views holding a point in their frame that "
                                    "must have it inside their mask for the vote to keep it", lo=0.5, hi=1.0)
     photo_mask_fill: bool = param(False, "photo_masks: also train towards the object where a view's mask and the vote "
@@ -78,7 +80,7 @@ class Params:
 
 UPSTREAM = ("ingest", "anchors", "successors")
 SECTIONS = ("surface", "train", "field", "render", "loss", "run", "anchors.gauge_radius", "anchors.gauge_percentile",
-            "anchors.gauge_centre", "anchors.object_min_seen", "meshing.support_margin")
+            "anchors.gauge_centre", "anchors.object_min_seen")
 OUTPUTS = (artifacts.POSES, artifacts.MODEL, artifacts.ROUND_META)
 PHOTO_MASKS = "photo_masks.zarr"
 PHOTO_MASKS_PLOT = "photo_masks.png"
@@ -139,7 +141,7 @@ def photo_labels(ctx, views, result: dict, ids: np.ndarray) -> np.ndarray:
     # fitted to their few views' points, can lie a few % of the radius off them
     region, obj = object_region.locate(result["track_points"], views.K[ids], w2c[ids], sizes[ids], min_seen)
     masks = segmentation.object_masks(views.images, sizes, views.K, w2c, ids, result, region, min_seen,
-                                      ctx.section("meshing").support_margin, p.photo_mask_band,
+                                      p.photo_mask_support, p.photo_mask_band,
                                       progress=lambda it: ctx.progress(it, desc="masks from the photos"))  # [V,H,W]
     voted = segmentation.vote_masks(masks, views.K[ids], w2c[ids], sizes[ids], result["track_points"][obj],
                                     agree=p.photo_mask_vote)
