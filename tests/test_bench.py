@@ -233,12 +233,17 @@ def test_results_md_replaces_between_markers_only_and_is_idempotent(tiny_bench, 
     after = "\n\nHow we compare: written by hand.\n"
     readme = tmp_path / "README.md"
     readme.write_text(f"{before}{results_md.BEGIN}\nold numbers\n{results_md.END}{after}")
-    argv = ["--readme", str(readme), "--bench-dir", str(bench_dir)]
+    # the refinement page too goes to a copy: the repository's own must not take this bench folder's (no
+    # refinement bench) while other tests compare it with `make results`
+    refinement = tmp_path / "REFINEMENT.md"
+    shutil.copy(bench.ROOT / "docs" / "REFINEMENT.md", refinement)
+    argv = ["--readme", str(readme), "--bench-dir", str(bench_dir), "--refinement-doc", str(refinement)]
     with contextlib.redirect_stdout(io.StringIO()):
         assert results_md.main(argv) == 0
         text = readme.read_text()
         assert results_md.main(argv) == 0
     assert readme.read_text() == text  # idempotent
+    assert "No refinement bench yet" in refinement.read_text()
     assert text.startswith(before + results_md.BEGIN) and text.endswith(results_md.END + after)
     inside = text[len(before):-len(after)]
     assert "old numbers" not in inside and "2026-01-01.json" in inside
