@@ -154,21 +154,9 @@ def point_silhouettes(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) ->
     """bool [N,H,W]: in each view (K [N,3,3], w2c [N,4,4], image size hw = (H, W)) the convex hull of the
     points [P,3] in front of it, projected: the silhouette a mask would give, from SfM points alone. Convex, so
     it also covers the object's concavities and its textureless parts between points."""
-    import cv2
+    from manifoldneus.geometry.segmentation import convex_hull_mask
 
-    H, W = hw
-    out = np.zeros((len(w2c), H, W), bool)
-    for i in range(len(w2c)):
-        xc = transform_points(w2c[i], points)  # [P,3]
-        xc = xc[xc[:, 2] > 1e-9]
-        if len(xc) < 3:
-            continue
-        uv = project_points(K[i], xc)  # [P,2]
-        uv = np.clip(uv, -4 * max(H, W), 5 * max(H, W))  # far off-image points still bound the hull, as ints
-        m = np.zeros((H, W), np.uint8)
-        cv2.fillConvexPoly(m, cv2.convexHull(uv.astype(np.float32)).astype(np.int32), 1)
-        out[i] = m > 0
-    return out
+    return np.stack([convex_hull_mask(points, K[i], w2c[i], hw) for i in range(len(w2c))]).reshape(len(w2c), *hw)
 
 
 def off_sphere_closure(vertices: np.ndarray, radius: float, resolution: int) -> np.ndarray:
