@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from manifoldneus.geometry.cameras import project_points, transform_points
 from manifoldneus.data.views import canvas_sizes
 
 
