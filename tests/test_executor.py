@@ -1,10 +1,9 @@
-"""Multi-run commands on Dask: a LocalCluster of 2 worker processes gives the serial
-sweep's JSON, a run that fails does not stop the other, two processes never compute one version
+"""Multi-run commands on Dask (a LocalCluster of 2 worker processes; tests/test_sweep.py checks that
+one gives the serial sweep's JSON): a run that fails does not stop the other, two processes never compute one version
 twice, cuda runs go to the worker that offers a GPU, and stages that runs share are computed once
 before they fan out."""
 from __future__ import annotations
 
-import json
 import sys
 import time
 import types
@@ -14,19 +13,10 @@ import pytest
 
 import runner
 import pipeline
-from bench import sweep
-from manifoldneus.data import io
 from runner import executor
 from tests.test_pipeline import FAST_SYNTH
-from tests.test_sweep import SWEEP_TINY
 
 distributed = pytest.importorskip("distributed")
-
-# What differs between two runs of the same sweep: times, paths, which run computed a shared
-# stage, and the versions after the first trained stage (its files record its training time).
-RUN_FACTS = ("date", "total_wall_seconds", "artifacts", "markdown", "json", "executor", "workers", "wall_seconds",
-           "cost_seconds", "stages", "fingerprints")
-
 
 @pytest.fixture(scope="module")
 def cluster():
@@ -40,26 +30,6 @@ def cluster():
 
         client.run(offer_gpu, workers=[gpu_worker])
         yield "dask://" + local.scheduler_address.removeprefix("tcp://"), gpu_worker
-
-
-def test_a_sweep_on_a_local_cluster_gives_the_serial_json(tmp_path, capsys):
-    results = {}
-    for name, kwargs in (("serial", {}), ("dask", {"executor_name": "dask", "workers": 2})):
-        results[name] = sweep.run_sweep("A3", "synthetic", ["0.65", "0.35"], SWEEP_TINY, tmp_path / name / "artifacts",
-                                        out_root=tmp_path / name / "bench", **kwargs)
-    err = capsys.readouterr().err
-    assert "dask: LocalCluster, 2 workers x 1 thread, dashboard http" in err
-    assert "[3/3] alpha = " in err  # a progress line per task: the shared stages, then the two settings
-    serial, dask = (json.loads(Path(results[n]["json"]).read_text()) for n in ("serial", "dask"))
-    assert dask["executor"] == "dask" and [r["label"] for r in dask["settings"]] == ["alpha = 0.65", "alpha = 0.35"]
-    assert all("error" not in r for r in dask["settings"])
-    # pose errors, rounds, views, schedule: the same
-    assert io.without_keys(dask, RUN_FACTS) == io.without_keys(serial, RUN_FACTS)
-    for ours, theirs in zip(dask["settings"], serial["settings"]):  # from the same versions
-        assert ours["fingerprints"]["anchors"] == theirs["fingerprints"]["anchors"]
-    # the stages both settings share were computed before they fanned out
-    assert all(how == "reused" for r in dask["settings"] for s, how in r["stages"].items()
-               if s in ("ingest", "features", "reference"))
 
 
 def test_a_run_that_fails_does_not_stop_the_other(cluster, tmp_path, capsys):

@@ -3,14 +3,18 @@ the tiny synthetic scene, prints a table with finite numbers and writes its JSON
 one artifacts folder, so the cache shows (an alpha change reuses the front-end)."""
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import shutil
+from io import StringIO
 from pathlib import Path
 
 import pytest
 
 import runner
 from bench import sweep
+from manifoldneus.data import io
 from tests.test_end_to_end import TINY
 
 # On top of TINY: one successor round (the tables read the anchor and the first successor round
@@ -32,7 +36,10 @@ def run(dirs, table, values, capsys) -> tuple[list[dict], str]:
     """The sweep's rows and printed table, after checking both and the JSON."""
     artifacts, out = dirs
     result = sweep.run_sweep(table, "synthetic", values, SWEEP_TINY, artifacts, out_root=out)
-    printed = capsys.readouterr().out
+    return checked(result, capsys.readouterr().out, table, values, out)
+
+
+def checked(result, printed, table, values, out) -> tuple[list[dict], str]:
     rows = result["settings"]
     assert [r["value"] for r in rows] == values
     for r in rows:
@@ -46,12 +53,52 @@ def run(dirs, table, values, capsys) -> tuple[list[dict], str]:
     return rows, printed
 
 
-def test_a3_alpha_reuses_the_front_end(dirs, capsys):
-    (_, second), _ = run(dirs, "A3", ["0.65", "0.35"], capsys)
+A3_VALUES = ["0.65", "0.35"]
+
+
+@pytest.fixture(scope="module")
+def a3_serial(dirs):
+    """(result, printed table) of the A3 sweep run serially into the module's fresh artifacts folder: its
+    own test checks the cache, the Dask test that a cluster gives the same JSON."""
+    printed = StringIO()
+    with contextlib.redirect_stdout(printed):
+        result = sweep.run_sweep("A3", "synthetic", A3_VALUES, SWEEP_TINY, dirs[0], out_root=dirs[1])
+    return result, printed.getvalue()
+
+
+def test_a3_alpha_reuses_the_front_end(a3_serial, dirs):
+    (_, second), _ = checked(*a3_serial, "A3", A3_VALUES, dirs[1])
     assert all(second["stages"][s] == "reused" for s in NOT_REACHED_BY_ALPHA)
     assert {s for s, how in second["stages"].items() if how == "computed"} == {
         "schedule", "anchors", "successors", "surface", "mesh", "evaluate", "export"}
     assert second["cost_seconds"] > second["wall_seconds"]  # the cache saved the front-end's time
+
+
+# What differs between two runs of the same sweep: times, paths, which run computed a shared
+# stage, and the versions after the first trained stage (its files record its training time).
+RUN_FACTS = ("date", "total_wall_seconds", "artifacts", "markdown", "json", "executor", "workers", "wall_seconds",
+             "cost_seconds", "stages", "fingerprints")
+
+
+def test_a_sweep_on_a_local_cluster_gives_the_serial_json(a3_serial, dirs, tmp_path, capsys):
+    pytest.importorskip("distributed")
+    # the serial run's stages that alpha does not reach, copied: the two workers train the settings anew
+    for stage in NOT_REACHED_BY_ALPHA:
+        shutil.copytree(dirs[0] / "synthetic" / stage, tmp_path / "artifacts" / "synthetic" / stage, symlinks=True)
+    result = sweep.run_sweep("A3", "synthetic", A3_VALUES, SWEEP_TINY, tmp_path / "artifacts",
+                             out_root=tmp_path / "bench", executor_name="dask", workers=2)
+    err = capsys.readouterr().err
+    assert "dask: LocalCluster, 2 workers x 1 thread, dashboard http" in err
+    assert "[3/3] alpha = " in err  # a progress line per task: the shared stages, then the two settings
+    serial, dask = (json.loads(Path(r["json"]).read_text()) for r in (a3_serial[0], result))
+    assert dask["executor"] == "dask" and [r["label"] for r in dask["settings"]] == ["alpha = 0.65", "alpha = 0.35"]
+    assert all("error" not in r for r in dask["settings"])
+    # pose errors, rounds, views, schedule: the same
+    assert io.without_keys(dask, RUN_FACTS) == io.without_keys(serial, RUN_FACTS)
+    for ours, theirs in zip(dask["settings"], serial["settings"]):  # from the same versions
+        assert ours["fingerprints"]["anchors"] == theirs["fingerprints"]["anchors"]
+    assert all(how == "computed" for r in dask["settings"] for s, how in r["stages"].items()
+               if s not in NOT_REACHED_BY_ALPHA)
 
 
 @pytest.mark.parametrize("table, values", [

@@ -187,10 +187,25 @@ def test_seeds_change_texture_only():
 
 def test_deterministic():
     a = syn.make_scene(seed=3, n_views=2, resolution=48)
+    syn._rendered.cache_clear()  # rendered again, not the process's kept copy
     b = syn.make_scene(seed=3, n_views=2, resolution=48)
     for name in ("images", "masks", "K", "w2c", "depth", "normals"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert a.names == b.names
+
+
+def test_a_scene_is_rendered_once_per_process_and_each_caller_owns_its_copy(monkeypatch):
+    syn._rendered.cache_clear()
+    calls = []
+    render = syn.render_view
+    monkeypatch.setattr(syn, "render_view", lambda *a, **k: calls.append(1) or render(*a, **k))
+    a = syn.make_scene(seed=5, n_views=2, resolution=32)
+    a.images[:] = 0
+    a.names.append("changed")
+    b = syn.make_scene(seed=5, n_views=2, resolution=32)
+    assert len(calls) == 2 and b.images.max() > 0 and b.names == ["view_000", "view_001"]
+    syn.make_scene(seed=5, n_views=2, resolution=32, k1=-0.1)  # another lens: another rendering
+    assert len(calls) == 4
 
 
 def test_look_at_shows_world_up_at_the_image_top():

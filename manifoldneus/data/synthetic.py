@@ -35,6 +35,8 @@ restricts ground-truth surface samples to the observed part.
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -635,8 +637,17 @@ def make_scene(seed: int = 0, n_views: int = 49, resolution: int = 192, floor: b
                k1: float = 0.0) -> SyntheticScene:
     """Render the synthetic scene: ``n_views`` views of ``resolution`` x ``resolution`` pixels, the object
     on a textured floor when ``floor``, through a lens of radial distortion ``k1`` (K stays the
-    pinhole part). The seed changes the texture only (the shape and the cameras are fixed)."""
-    H = W = int(resolution)
+    pinhole part). The seed changes the texture only (the shape and the cameras are fixed).
+    The caller's own copy of a rendering kept for the process: the ingest and the ground truth of a run
+    render the same views, and so do the runs of a sweep or a test suite."""
+    s = _rendered(int(seed), int(n_views), int(resolution), bool(floor), float(k1))
+    return dataclasses.replace(s, **{f.name: (getattr(s, f.name).copy() if f.name != "names" else list(s.names))
+                                     for f in dataclasses.fields(s)})
+
+
+@functools.lru_cache(maxsize=4)
+def _rendered(seed: int, n_views: int, resolution: int, floor: bool, k1: float) -> SyntheticScene:
+    H = W = resolution
     w2c = camera_poses(n_views)
     K = np.broadcast_to(intrinsics(H, W), (len(w2c), 3, 3)).copy()
     out = [render_view(K[i], w2c[i], H, W, seed, floor=floor, k1=k1) for i in range(len(w2c))]
