@@ -422,7 +422,8 @@ def test_without_masks_the_surface_field_holds_the_objects_whole_extent(on_a_flo
 def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_floor):
     """surface.photo_masks on the unmasked floor scene: the surface stage segments every trained view from its
     tracks and the support refitted to them, saves the masks, the views' vote and their picture, and trains with
-    the photo-mask term beside what an unmasked run keeps (the lines of sight, the frame scaled to the object)."""
+    the photo-mask term beside what an unmasked run keeps (the frame scaled to the object); the lines of sight only
+    when asked (surface.photo_mask_sight_lines)."""
     from manifoldneus.data import scenes
     from manifoldneus.geometry import segmentation
     from stages import surface as surface_stage
@@ -445,6 +446,10 @@ def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_flo
         assert truth[labels == 1].mean() > 0.93 and (~truth[labels == 0]).mean() > 0.85
         assert (labels != 0.5).mean() > 0.6
         status = io.load_json(surface_dir / "round.json")["train"]["loss_status"]
-        assert status["photo_mask"] == "on" and status["free_space"] == "on" and status["mask"].startswith("off")
+        assert status["photo_mask"] == "on" and "free_space" not in status and status["mask"].startswith("off")
+        asked = runner.run("synthetic", until="surface", artifacts=store.scene_dir.parent, overrides=[
+            *ON_A_FLOOR, "surface.photo_masks=true", "surface.photo_mask_sight_lines=true", "surface.iters=2"])
+        status = io.load_json(store.version_dir("surface", asked.fingerprints["surface"]) / "round.json")["train"]
+        assert status["loss_status"]["photo_mask"] == status["loss_status"]["free_space"] == "on"
     finally:  # the module's other tests read the unmasked run's versions through `current`
         runner.run("synthetic", until="mesh", artifacts=store.scene_dir.parent, overrides=ON_A_FLOOR)
