@@ -35,7 +35,7 @@ restricts ground-truth surface samples to the observed part.
 """
 from __future__ import annotations
 
-import dataclasses
+import copy
 import functools
 from dataclasses import dataclass, field
 
@@ -640,9 +640,7 @@ def make_scene(seed: int = 0, n_views: int = 49, resolution: int = 192, floor: b
     pinhole part). The seed changes the texture only (the shape and the cameras are fixed).
     The caller's own copy of a rendering kept for the process: the ingest and the ground truth of a run
     render the same views, and so do the runs of a sweep or a test suite."""
-    s = _rendered(int(seed), int(n_views), int(resolution), bool(floor), float(k1))
-    return dataclasses.replace(s, **{f.name: (getattr(s, f.name).copy() if f.name != "names" else list(s.names))
-                                     for f in dataclasses.fields(s)})
+    return copy.deepcopy(_rendered(int(seed), int(n_views), int(resolution), bool(floor), float(k1)))
 
 
 @functools.lru_cache(maxsize=4)

@@ -155,7 +155,7 @@ def point_silhouettes(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) ->
     it also covers the object's concavities and its textureless parts between points."""
     from manifoldneus.geometry.segmentation import convex_hull_mask
 
-    return np.stack([convex_hull_mask(points, K[i], w2c[i], hw) for i in range(len(w2c))]).reshape(len(w2c), *hw)
+    return np.array([convex_hull_mask(points, K[i], w2c[i], hw) for i in range(len(w2c))], bool).reshape(len(w2c), *hw)
 
 
 def off_sphere_closure(vertices: np.ndarray, radius: float, resolution: int) -> np.ndarray:
