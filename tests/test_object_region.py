@@ -419,7 +419,7 @@ def test_without_masks_the_surface_field_holds_the_objects_whole_extent(on_a_flo
     assert scale <= 1.0 and (reach == pytest.approx(p.extent_radius) if scale < 1 else reach <= p.extent_radius)
 
 
-def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_floor):
+def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_floor, monkeypatch):
     """surface.photo_masks on the unmasked floor scene: the surface stage segments every trained view from its
     tracks and the support refitted to them, saves the masks, the views' vote and their picture, and trains with
     the photo-mask term beside what an unmasked run keeps (the frame scaled to the object); the lines of sight only
@@ -447,6 +447,9 @@ def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_flo
         assert (labels != 0.5).mean() > 0.6
         status = io.load_json(surface_dir / "round.json")["train"]["loss_status"]
         assert status["photo_mask"] == "on" and "free_space" not in status and status["mask"].startswith("off")
+        # the switch, not the masks: labels that decide nothing spare a second segmentation
+        monkeypatch.setattr(surface_stage, "photo_labels", lambda ctx, views, result, ids: np.full(
+            (views.n, *views.images.shape[1:3]), 0.5, np.float32))
         asked = runner.run("synthetic", until="surface", artifacts=store.scene_dir.parent, overrides=[
             *ON_A_FLOOR, "surface.photo_masks=true", "surface.photo_mask_sight_lines=true", "surface.iters=2"])
         status = io.load_json(store.version_dir("surface", asked.fingerprints["surface"]) / "round.json")["train"]

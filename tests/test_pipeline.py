@@ -954,6 +954,19 @@ def test_every_key_reaches_exactly_the_stages_that_declare_it():
     assert checked > 100
 
 
+def test_a_command_starts_without_the_imports_only_training_needs():
+    """Every command imports the runner and every stage's module; torch._dynamo (which roma imports) and
+    scipy.stats took 2-4 of a status's 8 s on this machine, so they are imported where they are used."""
+    import subprocess
+    import sys
+
+    heavy = ("torch._dynamo", "scipy.stats", "roma")
+    code = f"import sys, runner; runner.load_stages(); print([m for m in {heavy!r} if m in sys.modules])"
+    out = subprocess.run([sys.executable, "-c", code], cwd=runner.ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
 def test_the_installed_command_is_the_pipelines_command_line(tmp_path):
     """`make setup` installs `manifoldneus` beside the venv's python: the same CLI as pipeline.py."""
     import subprocess

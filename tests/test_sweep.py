@@ -18,10 +18,12 @@ from manifoldneus.data import io
 from tests.test_end_to_end import TINY
 
 # On top of TINY: one successor round (the tables read the anchor and the first successor round
-# only) and fewer iterations, so that each back-end rerun takes seconds; poses learn from the first
-# iteration (the fast profile's frozen first half would leave 10-iteration rounds at their initial poses).
+# only), fewer iterations and no surface training of its own (the mesh is the last round's field's), so
+# that each back-end rerun takes seconds; poses learn from the first iteration (the fast profile's frozen
+# first half would leave 10-iteration rounds at their initial poses).
 SWEEP_TINY = [*TINY, "schedule.successors_per_round=20", "anchors.iters=10", "successors.iters=10",
-              "successors.final_iters=0", "reference_surface.iters=10", "anchors.pose_start_frac=0", "successors.pose_start_frac=0"]
+              "successors.final_iters=0", "surface.iters=0", "reference_surface.iters=10", "anchors.pose_start_frac=0",
+              "successors.pose_start_frac=0"]
 NOT_REACHED_BY_ALPHA = ("ingest", "ground_truth", "features", "matching", "covisibility", "spectral", "reference",
                         "evaluate_poses", "reference_surface")
 
@@ -82,8 +84,8 @@ RUN_FACTS = ("date", "total_wall_seconds", "artifacts", "markdown", "json", "exe
 
 def test_a_sweep_on_a_local_cluster_gives_the_serial_json(a3_serial, dirs, tmp_path, capsys):
     pytest.importorskip("distributed")
-    # the serial run's stages that alpha does not reach, copied: the two workers train the settings anew
-    for stage in NOT_REACHED_BY_ALPHA:
+    # the serial run's stages up to the anchors, copied: the two workers train the settings' successors anew
+    for stage in (*NOT_REACHED_BY_ALPHA, "schedule", "anchors"):
         shutil.copytree(dirs[0] / "synthetic" / stage, tmp_path / "artifacts" / "synthetic" / stage, symlinks=True)
     result = sweep.run_sweep("A3", "synthetic", A3_VALUES, SWEEP_TINY, tmp_path / "artifacts",
                              out_root=tmp_path / "bench", executor_name="dask", workers=2)
@@ -97,8 +99,8 @@ def test_a_sweep_on_a_local_cluster_gives_the_serial_json(a3_serial, dirs, tmp_p
     assert io.without_keys(dask, RUN_FACTS) == io.without_keys(serial, RUN_FACTS)
     for ours, theirs in zip(dask["settings"], serial["settings"]):  # from the same versions
         assert ours["fingerprints"]["anchors"] == theirs["fingerprints"]["anchors"]
-    assert all(how == "computed" for r in dask["settings"] for s, how in r["stages"].items()
-               if s not in NOT_REACHED_BY_ALPHA)
+    assert all(how == ("reused" if s in ("schedule", "anchors") else "computed") for r in dask["settings"]
+               for s, how in r["stages"].items() if s not in NOT_REACHED_BY_ALPHA)
 
 
 @pytest.mark.parametrize("table, values", [

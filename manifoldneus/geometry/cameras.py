@@ -32,7 +32,6 @@ Numpy functions are used by the geometric front-end and evaluation; torch functi
 from __future__ import annotations
 
 import numpy as np
-import roma
 import torch
 
 # --------------------------------------------------------------------------- numpy
@@ -368,6 +367,8 @@ def skew(v):
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     """se(3) -> SE(3). xi: [...,6] = (rho, omega). Returns [...,3,4]. Differentiable at 0."""
+    import roma  # here, not at the top: roma imports torch._dynamo, a second of every command's start-up
+
     rho, omega = xi[..., :3], xi[..., 3:]
     R = roma.rotvec_to_rotmat(omega)  # [...,3,3]
     theta2 = (omega**2).sum(-1, keepdim=True)[..., None]  # [...,1,1]
@@ -385,6 +386,8 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
 
 def se3_log(pose: torch.Tensor) -> torch.Tensor:
     """SE(3) -> se(3). pose: [...,3,4] or [...,4,4]. Returns [...,6] = (rho, omega)."""
+    import roma
+
     R, t = pose[..., :3, :3], pose[..., :3, 3]
     omega = roma.rotmat_to_rotvec(R)
     theta2 = (omega**2).sum(-1, keepdim=True)[..., None]

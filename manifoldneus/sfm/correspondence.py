@@ -31,7 +31,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.stats import norm
 
 from manifoldneus.geometry.cameras import pixels_to_normalised, skew
 from manifoldneus.config import param
@@ -327,6 +326,9 @@ def accept_per_view(loss, w2c_start: torch.Tensor, w2c_end: torch.Tensor, p: Cor
     # a view that did not move has no change to test (se 0): it keeps its pose either way
     tested = (count >= p.accept_min_obs) & (se > 0)
     z = np.where(tested, mean / np.where(se > 0, se, 1), np.nan)
+    # imported here: scipy.stats takes most of a second to import, which commands that decide no pose need not pay
+    from scipy.stats import norm
+
     z_limit = float(norm.isf(p.accept_alpha / max(int(tested.sum()), 1)))
     keep = (tested & (z < -z_limit)) if p.guard else np.ones(n, bool)
 
