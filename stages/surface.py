@@ -86,8 +86,6 @@ UPSTREAM = ("ingest", "anchors", "successors")
 SECTIONS = ("surface", "train", "field", "render", "loss", "run", "anchors.gauge_radius", "anchors.gauge_percentile",
             "anchors.gauge_centre", "anchors.object_min_seen")
 OUTPUTS = (artifacts.POSES, artifacts.MODEL, artifacts.ROUND_META)
-PHOTO_MASKS = "photo_masks.zarr"
-PHOTO_MASKS_PLOT = "photo_masks.png"
 
 
 def field_frame(result: dict, views, ids: np.ndarray, anchors_p, axes: str = "sfm") -> np.ndarray:
@@ -149,10 +147,10 @@ def photo_labels(ctx, views, result: dict, ids: np.ndarray) -> np.ndarray:
                                       progress=lambda it: ctx.progress(it, desc="masks from the photos"))  # [V,H,W]
     voted = segmentation.vote_masks(masks, views.K[ids], w2c[ids], sizes[ids], result["track_points"][obj],
                                     agree=p.photo_mask_vote)
-    io.save_arrays(ctx.out / PHOTO_MASKS, {"masks": masks, "voted": voted, "views": ids})
+    io.save_arrays(ctx.out / artifacts.PHOTO_MASKS, {"masks": masks, "voted": voted, "views": ids})
     labels = np.full((views.n, *masks.shape[1:]), 0.5, np.float32)
     labels[ids] = segmentation.object_labels(masks, voted, p.photo_mask_erode, p.photo_mask_fill)
-    io.save_png(ctx.out / PHOTO_MASKS_PLOT, segmentation.labels_picture(views.images[ids], labels[ids]))
+    io.save_png(ctx.out / artifacts.PHOTO_MASKS_PLOT, segmentation.labels_picture(views.images[ids], labels[ids]))
     disputed = 1 - (masks == voted).mean()
     ctx.log.info("masks from the photos: %.1f %% of the posed views' pixels the object's, %.1f %% the background's, "
                  "%.1f %% disputed by the vote (support %s)", 100 * (labels[ids] == 1).mean(),

@@ -379,6 +379,32 @@ def test_the_supports_own_points_leave_the_silhouettes_and_the_skirt_around_the_
     assert (np.linalg.norm(np.asarray(kept.vertices)[:, :2], axis=1) > 0.5).sum() > len(V)  # kept: table and ring
 
 
+def test_masks_made_from_the_photos_replace_the_points_hulls_and_keep_a_top_no_point_reaches():
+    """A ball whose top has no SfM points (textureless, as scan24's roofs): the hulls of its points cut the top off in
+    the views that see it from the side; the object's silhouettes in those views (what masks made from the photos
+    give) keep it."""
+    from manifoldneus.output import evaluation
+
+    def sdf(p):
+        return np.linalg.norm(p, axis=1) - 0.4
+
+    K, w2c, sizes = _views()
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(3000, 3))
+    ball = 0.4 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    points = ball[ball[:, 2] < 0.1]  # [P,3]
+    region = object_region.ObjectRegion([0.0, 0.0, 0.0], 0.8)
+    p = evaluation.MeshParams(resolution=64, crop_to_object="on", cull_unseen=False, keep_components=0,
+                              silhouette_dilation=2.0)
+    args = (_analytic_trainer(sdf, 128), p, K, w2c)
+    hulls = np.asarray(evaluation.make_mesh(*args, hw=tuple(sizes[0]), region=region, object_points=points).vertices)
+    outline = meshing.point_silhouettes(ball, K, w2c, tuple(sizes[0]))  # [N,H,W] the whole ball's
+    whole = np.asarray(evaluation.make_mesh(*args, hw=tuple(sizes[0]), region=region, object_points=points,
+                                            silhouettes=outline).vertices)
+    assert hulls[:, 2].max() < 0.3 and whole[:, 2].max() > 0.39
+    assert len(whole) > 1.2 * len(hulls)
+
+
 def test_the_extent_scale_brings_the_objects_reach_within_the_radius_never_beyond():
     from stages.surface import extent_scale
 
@@ -436,8 +462,8 @@ def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_flo
         assert report["surface"] == "computed" and report["successors"] == "reused"
         surface_dir = store.version_dir("surface", report.fingerprints["surface"])
         final, used, _ = _final_round_points(store)
-        made = io.load_arrays(surface_dir / surface_stage.PHOTO_MASKS)
-        assert made["views"].tolist() == used.tolist() and (surface_dir / surface_stage.PHOTO_MASKS_PLOT).is_file()
+        made = io.load_arrays(surface_dir / artifacts.PHOTO_MASKS)
+        assert made["views"].tolist() == used.tolist() and (surface_dir / artifacts.PHOTO_MASKS_PLOT).is_file()
         truth = scenes.layout_reference(scenes.resolve_scene("synthetic"), runner.resolve_params(
             runner.load_stages(), overrides=ON_A_FLOOR)["ingest"])["masks"][used]
         labels = segmentation.object_labels(made["masks"], made["voted"], 1, fill=True)
@@ -447,12 +473,21 @@ def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_flo
         assert (labels != 0.5).mean() > 0.6
         status = io.load_json(surface_dir / "round.json")["train"]["loss_status"]
         assert status["photo_mask"] == "on" and "free_space" not in status and status["mask"].startswith("off")
+        # what the mesh stage culls to in place of the points' hulls: all but the carved background; a view the
+        # stage made no mask for keeps everything
+        carved = segmentation.object_labels(made["masks"], made["voted"], 2, fill=True) == 0
+        ids = np.append(used, 999)
+        outline = artifacts.load_photo_silhouettes(surface_dir, ids, 2)
+        assert outline.shape == (len(ids), *truth.shape[1:]) and outline[-1].all()
+        assert (outline[:-1] == ~carved).all() and truth[~outline[:-1]].mean() < 0.15
         # the switch, not the masks: labels that decide nothing spare a second segmentation
         monkeypatch.setattr(surface_stage, "photo_labels", lambda ctx, views, result, ids: np.full(
             (views.n, *views.images.shape[1:3]), 0.5, np.float32))
         asked = runner.run("synthetic", until="surface", artifacts=store.scene_dir.parent, overrides=[
             *ON_A_FLOOR, "surface.photo_masks=true", "surface.photo_mask_sight_lines=true", "surface.iters=2"])
-        status = io.load_json(store.version_dir("surface", asked.fingerprints["surface"]) / "round.json")["train"]
+        asked_dir = store.version_dir("surface", asked.fingerprints["surface"])
+        status = io.load_json(asked_dir / "round.json")["train"]
         assert status["loss_status"]["photo_mask"] == status["loss_status"]["free_space"] == "on"
+        assert artifacts.load_photo_silhouettes(asked_dir, used, 2) is None  # it made no masks of its own
     finally:  # the module's other tests read the unmasked run's versions through `current`
         runner.run("synthetic", until="mesh", artifacts=store.scene_dir.parent, overrides=ON_A_FLOOR)

@@ -11,6 +11,7 @@ import numpy as np
 
 from manifoldneus.data import io
 from manifoldneus.data.views import Views
+from manifoldneus.geometry import segmentation
 
 VIEWS = "views.zarr"  # ingest's arrays: images, sizes, K, masks, priors
 INPUT_CAMERAS = "input_cameras.zarr"  # ingest's poses a COLMAP model gave (w2c, its points): anchors.pose_init = input
@@ -28,6 +29,8 @@ POSES = "poses.zarr"  # the same name in reference, ground_truth, mesh and every
 MESH = "mesh.ply"  # a surface mesh: mesh's, reference_surface's, export's (PLY)
 MODEL = "model.pt"  # a trained field with its pose corrections (a round's, reference_surface's)
 ROUND_META = "round.json"  # a round's info: views, training summary, initialisation
+PHOTO_MASKS = "photo_masks.zarr"  # surface's masks made from the photos (surface.photo_masks), where it made them
+PHOTO_MASKS_PLOT = "photo_masks.png"
 SPECTRAL = "spectral.zarr"  # spectral's embedding phi and component labels
 COMPONENTS = "components.json"  # covisibility's connected components
 REFERENCE_POSE_METRICS = "reference_pose_metrics.json"  # evaluate_poses' scores of the pycolmap reference
@@ -159,6 +162,24 @@ def load_surface(surface_dir: Path) -> dict:
     ``field_from_model`` [4,4], the similarity from that frame to the frame its field was trained in."""
     out = load_round(surface_dir)
     out[FIELD_FROM_MODEL] = np.asarray(out["info"][FIELD_FROM_MODEL], np.float64)
+    return out
+
+
+def load_photo_silhouettes(surface_dir: Path, ids: np.ndarray, erode: int) -> np.ndarray | None:
+    """bool [N,H,W]: for each view of ``ids`` [N] what the surface stage's masks made from the photos did not carve
+    (neither its GrabCut mask nor the views' vote holds it, ``erode`` px in: the photo-mask term's background,
+    :func:`manifoldneus.geometry.segmentation.object_labels`); everything in a view it made none for. None where
+    it made none."""
+    path = surface_dir / PHOTO_MASKS
+    if not path.exists():
+        return None
+    made = io.load_arrays(path)  # masks, voted [V,H,W] bool; views [V]
+    uncarved = segmentation.object_labels(made["masks"], made["voted"], erode) != 0
+    out = np.ones((len(ids), *uncarved.shape[1:]), bool)
+    row = {int(v): i for i, v in enumerate(made["views"])}
+    for i, v in enumerate(ids):
+        if int(v) in row:
+            out[i] = uncarved[row[int(v)]]
     return out
 
 

@@ -148,11 +148,12 @@ def crops_to_object(crop_to_object: str, masked: bool) -> bool:
 
 
 def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=None, region=None,
-              object_points=None, sizes=None):
+              object_points=None, sizes=None, silhouettes=None):
     """Mesh of the trainer's SDF; culled by the given views' dilated masks, to the surface they
     see and to the object's ``region`` (:class:`~manifoldneus.geometry.object_region.ObjectRegion`, the field's
     frame) and the silhouettes of its ``object_points`` [P,3], when asked (K [N,3,3] and w2c [N,4,4] at image size
-    hw = (H, W), the masks' size; ``sizes`` [N,2] (H, W) each view's own part of it, None: all)."""
+    hw = (H, W), the masks' size; ``sizes`` [N,2] (H, W) each view's own part of it, None: all). ``silhouettes``
+    [N,H,W] bool, where the run has them (the masks the surface stage made from the photos), replace the points'."""
     mesh = meshing.extract_mesh(trainer.sdf_fn(), p.resolution, trainer.rp.radius, p.keep_components,
                                 coarse_step=p.coarse_step, band=p.band)
     trained = (trainer.H, trainer.W)  # the culls' tolerances are in its pixels
@@ -179,7 +180,8 @@ def make_mesh(trainer: Trainer, p: MeshParams, K=None, w2c=None, masks=None, hw=
                 object_points = object_points[region.contains(object_points, p.support_margin * region.radius)]
     if (crop and object_points is not None and len(object_points) and K is not None and p.silhouette_vote > 0
             and len(mesh.faces)):
-        silhouettes = meshing.point_silhouettes(object_points, K, w2c, hw)  # [N,H,W]
+        if silhouettes is None:
+            silhouettes = meshing.point_silhouettes(object_points, K, w2c, hw)  # [N,H,W]
         mesh = meshing.cull_by_masks(mesh, K, w2c, silhouettes, image_px(p.silhouette_dilation, hw, trained),
                                      min_fraction=p.silhouette_vote, sizes=sizes)
         culled = True
