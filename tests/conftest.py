@@ -76,13 +76,14 @@ ONE_SUCCESSOR_ROUND = "schedule.successors_per_round=20"
 
 
 # The longest test files (by a whole run's durations, 2026-11-29), run first: `make test` hands whole files
-# to its two workers in collection order, and a long file handed out last keeps one core busy after
-# the other has finished. The two longest build no shared fixture, so neither worker starts by waiting
-# for the other's `tiny_build`.
+# to its two workers in collection order (--no-loadscope-reorder), and a long file handed out last keeps one
+# core busy after the other has finished. The two longest build no shared fixture, so neither worker starts
+# by waiting for the other's `tiny_build`.
 LONGEST_FIRST = ("test_self_calibration.py", "test_bench.py", "test_end_to_end.py", "test_sweep.py",
-                 "test_reproducible.py", "test_pipeline.py", "test_object_region.py", "test_pose_init.py",
-                 "test_gpu_step.py", "test_bench_refine.py", "test_bench_own_photos.py", "test_neural.py",
-                 "test_executor.py")
+                 "test_reproducible.py", "test_pipeline.py", "test_object_region.py", "test_bench_refine.py",
+                 "test_neural.py", "test_pose_init.py", "test_bench_own_photos.py", "test_executor.py",
+                 "test_install.py", "test_ingest.py", "test_viewer.py", "test_report.py",
+                 "test_frontend_matching.py", "test_gpu_step.py")
 
 
 def pytest_collection_modifyitems(config, items):
