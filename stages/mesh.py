@@ -38,10 +38,10 @@ def run(ctx) -> None:
     object_points = object_points_of(result, views, ids, ctx.section("anchors").object_min_seen)
     if object_points is None:
         object_points = artifacts.load_initial_poses(ctx.input("anchors"), ["object_points"])["object_points"]
-    # meshed in the field's frame, saved in the rounds' (the poses' and every later stage's)
     # where the surface stage made masks from the photos, what they leave uncarved is the object's silhouette: the
     # points' hulls cut the textureless parts few points reach (scan24's roofs, seed 0: Chamfer 2.48 -> 2.34 mm)
     photo = artifacts.load_photo_silhouettes(ctx.input("surface"), ids, ctx.section("surface").photo_mask_erode)
+    # meshed in the field's frame, saved in the rounds' (the poses' and every later stage's)
     mesh = evaluation.make_mesh(surface.trainer, ctx.params, views.K[ids], surface.trainer.views.w2c,
                                 masks, views.images.shape[1:3], region, cameras.transform_points(G, object_points),
                                 sizes=views.view_sizes[ids], silhouettes=photo)
