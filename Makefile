@@ -36,9 +36,9 @@ status: setup
 view: setup
 	$(PY) pipeline.py view --scene $(SCENE) $(ARGS)
 
+# whole files to two workers, longest first (tests/conftest.py); xdist would otherwise hand out the files with the
+# most tests first, and a long file of few tests last
 test: setup
-	# whole files to two workers, longest first (tests/conftest.py); xdist would otherwise hand out the files
-	# with the most tests first, and a long file of few tests last
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder tests
 
 # the bench (the four development scenes unless SCENE or SCENES is given), then README's Results regenerated from
