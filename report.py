@@ -276,7 +276,7 @@ def plot_pose_errors(rows_by_system: dict[str, list[dict]], units: str, path: Pa
         labels.update({round_position(r["label"]): r["label"] for r in rows if name != REFERENCE})
     for ax, title in zip(axes, ("rotation error, mean (deg)", f"centre error, mean ({units})")):
         ax.set_xticks(sorted(labels), [labels[k] for k in sorted(labels)])
-        ax.set_yscale("log")
+        io.log_y(ax)
         ax.set_title(title, fontsize=10)
         ax.legend(fontsize=8)
     fig.tight_layout()
@@ -307,7 +307,7 @@ def plot_losses(rounds: list[RoundPoses], title: str, path: Path) -> None:
         ax.plot(x, y, lw=2.0 if key == "loss" else 1.0, color="k" if key == "loss" else f"C{k}",
                 label="total" if key == "loss" else key[5:])
     _round_boundaries(ax, offsets)
-    ax.set_yscale("log")
+    io.log_y(ax)
     ax.set_xlabel("iteration")
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=7, ncol=3)

@@ -84,7 +84,7 @@ def plot_rounds(rows: list[dict], path, units: str) -> None:
                          (ax[1], "center_err_units", f"camera centre error ({units})")):
         a.plot(x, [r["summary"][key]["mean"] for r in rows], "o-", label="mean")
         a.plot(x, [r["summary"][key]["median"] for r in rows], "s--", label="median")
-        a.set_yscale("log")
+        io.log_y(a)
         a.set_title(f"{what} after each round")
         a.set_xlabel("round")
         a.set_ylabel(what)

@@ -22,3 +22,27 @@ def test_json_is_strict_nan_becomes_null(tmp_path):
     text = (tmp_path / "m.json").read_text()
     assert "NaN" not in text and "Infinity" not in text
     assert json.loads(text) == {"loss": None, "per_view": [1.0, None], "n": 3}
+
+
+def test_a_log_axis_labels_the_defaults_ticks_in_plain_numbers(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labelled = {}
+    for plain in (False, True):  # less than a decade (minor ticks labelled) and four decades (decades only)
+        fig, axes = plt.subplots(1, 2)
+        for ax, y in zip(axes, ([0.17, 0.45, 1.2], [2e-4, 0.3, 5.0])):
+            ax.plot(y)
+            io.log_y(ax) if plain else ax.set_yscale("log")
+        fig.canvas.draw()
+        labelled[plain] = [[(round(t.get_position()[1], 9), t.get_text()) for t in ax.get_yticklabels(minor=minor)
+                            if t.get_text() and ax.get_ylim()[0] <= t.get_position()[1] <= ax.get_ylim()[1]]
+                           for ax in axes for minor in (False, True)]
+        plt.close(fig)
+    for default, plain in zip(labelled[False], labelled[True]):
+        assert [p for p, _ in plain] == [p for p, _ in default]  # the same ticks carry a label
+        assert all("$" in text for _, text in default) and all(float(text) == p for p, text in plain)
+    assert [text for _, text in labelled[True][1]] == ["0.2", "0.3", "0.4", "0.6"]
+    assert [text for _, text in labelled[True][2]] == ["0.001", "0.01", "0.1", "1"]
