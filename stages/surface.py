@@ -61,6 +61,11 @@ class Params:
                                   "both hold it (scan24's Chamfer 1.90 against 2.31 mm, three seeds); off: only "
                                   "the background they agree on is carved, because both hold the holes the object "
                                   "encloses: the synthetic torus's hole grew surface, Chamfer 0.0135 against 0.0108")
+    photo_mask_fill_colour: float = param(8.0, "photo_masks with photo_mask_fill: filled pixels whose colour lies "
+                                          "within this many RGB levels of one the view's carved background shows "
+                                          "are left to the photos (a hole the object encloses shows the "
+                                          "background; scan24 seed 0: Chamfer 1.59 against 1.79 mm); 0: none",
+                                          lo=0.0)
     photo_mask_erode: int = param(4, "photo_masks: the pixels (of the ingest's images) each decided region shrinks "
                                   "by, away from the masks' edges", lo=0)
     photo_mask_sight_lines: bool = param(False, "photo_masks: keep the SfM lines of sight free of surface too "
@@ -150,6 +155,9 @@ def photo_labels(ctx, views, result: dict, ids: np.ndarray) -> np.ndarray:
     io.save_arrays(ctx.out / artifacts.PHOTO_MASKS, {"masks": masks, "voted": voted, "views": ids})
     labels = np.full((views.n, *masks.shape[1:]), 0.5, np.float32)
     labels[ids] = segmentation.object_labels(masks, voted, p.photo_mask_erode, p.photo_mask_fill)
+    if p.photo_mask_fill and p.photo_mask_fill_colour > 0:
+        labels[ids] = segmentation.unfill_background_colours(labels[ids], views.images[ids], sizes[ids],
+                                                             p.photo_mask_fill_colour)
     io.save_png(ctx.out / artifacts.PHOTO_MASKS_PLOT, segmentation.labels_picture(views.images[ids], labels[ids]))
     disputed = 1 - (masks == voted).mean()
     ctx.log.info("masks from the photos: %.1f %% of the posed views' pixels the object's, %.1f %% the background's, "

@@ -115,3 +115,30 @@ def test_the_vote_leaves_a_views_wrong_mask_undecided_and_decides_the_rest(scene
     assert agree[decided].mean() > 0.99 and decided.mean() > 0.8
     picture = segmentation.labels_picture(images, labels, n=3, size=64)
     assert picture.dtype == np.uint8 and picture.shape == (64, 3 * 66, 3)
+
+
+def test_filled_pixels_coloured_as_the_carved_background_are_left_to_the_photos():
+    """A ring on a dark background, its texture sprinkled with dark dots, and the hole in its middle kept inside
+    the mask (as GrabCut keeps it): filling would grow surface across the hole. The filled pixels of the
+    background's colour go back to undecided; the ring stays filled but for its dark dots, the carving stays."""
+    rng = np.random.default_rng(0)
+    H = W = 96
+    yy, xx = np.mgrid[:H, :W]
+    r = np.hypot(yy - 48, xx - 48)
+    ring, hole = (r >= 14) & (r < 36), r < 14
+    background = np.clip(rng.normal(40, 2, (2, H, W, 3)), 0, 255)  # dark grey with sensor noise
+    dots = ring & (rng.random((2, H, W)) < 0.1)  # [2,H,W] 10 % of the ring as dark as the background
+    images = np.where((ring & ~dots)[..., None], rng.integers(90, 255, (2, H, W, 3)), background).astype(np.uint8)
+    masks = np.broadcast_to(r < 36, (2, H, W))  # the hole inside
+    labels = segmentation.object_labels(masks, masks, erode=1, fill=True)
+    sizes = np.array([[H, W], [H, W - 16]])  # the second view's own part is narrower
+    out = segmentation.unfill_background_colours(labels, images, sizes, margin=8.0)
+    own = np.zeros_like(masks)
+    own[0], own[1, :, : W - 16] = True, True
+    assert (labels[:, hole] == 1).all() and (out[own & hole[None]] == 0.5).mean() > 0.98
+    bright = (labels == 1) & ring & ~dots
+    assert (out[bright] == 1).all()  # the ring's own colours stay filled
+    assert (out[own & dots & (labels == 1)] == 0.5).mean() > 0.98  # its dark dots are left to the photos too
+    assert np.array_equal(out == 0, labels == 0) and (out[labels == 0.5] == 0.5).all()
+    assert np.array_equal(out[1, :, W - 16:], labels[1, :, W - 16:])  # beyond a view's own part: as it was
+    assert np.array_equal(segmentation.unfill_background_colours(labels, images, sizes, margin=8.0), out)

@@ -168,6 +168,33 @@ def object_labels(masks: np.ndarray, voted: np.ndarray, erode: int, fill: bool =
     return out
 
 
+def unfill_background_colours(labels: np.ndarray, images: np.ndarray, sizes: np.ndarray, margin: float,
+                              clusters: int = 16, seed: int = 0) -> np.ndarray:
+    """labels [V,H,W] float32 (:func:`object_labels`) with each view's filled pixels (1) whose colour lies within
+    ``margin`` (RGB levels) of one its carved pixels (0) show set back to undecided (0.5), in a copy; images
+    [V,H,W,3] uint8, sizes [V,2] (H, W) each view's own part. GrabCut keeps a hole the object encloses inside the
+    mask (the background through it is as dark as a dark texture), and the vote with it: filling there grows
+    surface across the hole. A pixel coloured as the background is left to the photos; the background's colours
+    are ``clusters`` k-means centres of the view's carved pixels."""
+    out = labels.copy()
+    rng = np.random.default_rng(seed)
+    cv2.setRNGSeed(seed)  # k-means++ draws from OpenCV's generator
+    for j, (image, (h, w)) in enumerate(zip(images, sizes)):
+        view = image[:h, :w, :3].astype(np.float32)  # [h,w,3]
+        carved, filled = out[j, :h, :w] == 0, out[j, :h, :w] == 1
+        if carved.sum() < clusters or not filled.any():
+            continue
+        background = view[carved]
+        background = background[rng.choice(len(background), min(len(background), 20000), replace=False)]
+        _, _, centres = cv2.kmeans(background, clusters, None, (cv2.TERM_CRITERIA_MAX_ITER, 10, 1.0), 1,
+                                   cv2.KMEANS_PP_CENTERS)  # [clusters,3]
+        nearest = np.linalg.norm(view[filled][:, None] - centres[None], axis=-1).min(1)  # [F]
+        veto = np.zeros_like(filled)
+        veto[filled] = nearest < margin
+        out[j, :h, :w][veto] = 0.5
+    return out
+
+
 def labels_picture(images: np.ndarray, labels: np.ndarray, n: int = 6, size: int = 320) -> np.ndarray:
     """uint8 [h,w,3]: up to ``n`` of the views (images [V,H,W,3] uint8, evenly picked) side by side, each at most
     ``size`` px, the object's pixels of ``labels`` [V,H,W] tinted green, the background's red, the undecided as
