@@ -24,7 +24,7 @@ def test_json_is_strict_nan_becomes_null(tmp_path):
     assert json.loads(text) == {"loss": None, "per_view": [1.0, None], "n": 3}
 
 
-def test_a_log_axis_labels_the_defaults_ticks_in_plain_numbers(tmp_path):
+def test_a_log_axis_labels_the_defaults_ticks_in_plain_numbers():
     import matplotlib
 
     matplotlib.use("Agg")
