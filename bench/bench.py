@@ -21,7 +21,8 @@ Errors come from each preset's `evaluate` artifact (pycolmap: `evaluate_poses`).
 Prints a per-system table (ratios against pycolmap in columns of their own, since absolute times
 on a shared machine drift), a stage x system wall-time table and the per-stage table; writes
 ``<out-dir>/<scene>/<YYYY-MM-DD>.json`` (``bench/results_md.py`` turns the latest into README's
-Results; a subset of the systems or an `--until` run gets a suffix instead). `--force-all`
+Results; a subset of the systems gets a suffix and replaces those systems' rows there, an `--until` run a
+suffix and is not shown). `--force-all`
 recomputes every version once, so that all times are of this run. Speed targets are checked
 here, never in tests.
 

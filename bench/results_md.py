@@ -36,23 +36,55 @@ HEADLINE_SCENE = "scan24"  # the headline's scene when the refinement bench has 
 SFM_ALL_KEYS = ("sfm_all_rot_deg", "sfm_all_centre", "sfm_all_psnr_masked")
 
 
+DATED = "[0-9][0-9][0-9][0-9]-[0-9][0-9]-[0-9][0-9]"
+
+
 def latest_results(bench_dir: Path) -> dict[str, tuple[Path, dict | None]]:
-    """Scene -> (the newest bench JSON with per-system results, its content), or (the newest bench
-    JSON, None) when all of them predate the per-system bench. Bench files are named
-    <YYYY-MM-DD>.json, so the newest sorts last; other JSON beside them (a subset of the systems,
-    sweeps, reports) is not used."""
+    """Scene -> (the newest bench JSON with per-system results, its content, with the systems that later
+    benches of a subset measured again in place: `with_remeasured`), or (the newest bench JSON, None) when all
+    of them predate the per-system bench. Bench files are named <YYYY-MM-DD>.json, so the newest sorts last;
+    other JSON beside them (sweeps, reports, a run cut by --until) is not used."""
     out = {}
     for scene_dir in sorted(p for p in Path(bench_dir).iterdir() if p.is_dir()):
-        files = sorted(scene_dir.glob("[0-9][0-9][0-9][0-9]-[0-9][0-9]-[0-9][0-9].json"))
+        files = sorted(scene_dir.glob(f"{DATED}.json"))
         if not files:
             continue
         out[scene_dir.name] = (files[-1], None)
         for path in reversed(files):
             result = json.loads(path.read_text())
             if "systems" in result:
-                out[scene_dir.name] = (path, result)
+                out[scene_dir.name] = (path, with_remeasured(result, scene_dir))
                 break
     return out
+
+
+def with_remeasured(result: dict, scene_dir: Path) -> dict:
+    """A full bench's ``result`` with each system that a later bench of a subset of the systems measured again
+    (``<date>-<systems>.json``, the same seeds, whole runs) in place: its rows, its seeds' figures and the
+    parameters its preset resolved to (so the stale check judges what is shown), the ratios to pycolmap and the
+    targets recomputed. ``remeasured`` names each replaced system's file, for the provenance line."""
+    later = []
+    for path in scene_dir.glob(f"{DATED}-*.json"):
+        sub = json.loads(path.read_text())
+        if ("systems" in sub and not sub.get("until") and sub["date"] > result["date"]
+                and sub.get("seeds") == result.get("seeds")):
+            later.append((sub["date"], path, sub))
+    if not later:
+        return result
+    merged = json.loads(json.dumps(result))
+    remeasured = merged.setdefault("remeasured", {})
+    for _, path, sub in sorted(later, key=lambda t: t[0]):
+        for key, system in sub["systems"].items():
+            preset = bench.SYSTEMS[key].preset or "default"
+            merged["systems"][key] = system
+            for seed, systems in sub.get("per_seed", {}).items():
+                merged["per_seed"][seed][key] = systems[key]
+            merged["resolved_params"][preset] = sub["resolved_params"][preset]
+            remeasured[key] = {"file": path.name, "date": sub["date"], "overrides": sub.get("overrides", []),
+                               "commit": sub.get("commit")}
+    bench.add_ratios(merged["systems"])
+    merged["targets"] = bench.targets(merged)
+    return merged
 
 
 def refine_files(bench_dir: Path) -> list[Path]:
@@ -71,6 +103,11 @@ def provenance(path: Path, result: dict, root: Path) -> str:
             f"`{rel(path, root)}`, {result['total_wall_seconds']:.0f} s in all")
     if result.get("overrides"):
         line += "; with " + " ".join(f"`--set {o}`" for o in result["overrides"])
+    for key, again in result.get("remeasured", {}).items():
+        line += (f"; its {bench.SYSTEMS[key].label} rows measured again {again['date'].replace('T', ' ')} "
+                 f"(`{rel(Path(path).parent / again['file'], root)}`"
+                 + (" with " + " ".join(f"`--set {o}`" for o in again["overrides"]) if again["overrides"] else "")
+                 + ")")
     return line + "._"
 
 
@@ -135,9 +172,11 @@ def changed_defaults(result: dict, presets=None) -> list[str]:
 def read_by_runs(values: dict, key: str) -> bool:
     """Whether runs resolving their parameters to ``values`` ({"section.key": value}) read ``key``."""
     section, _, name = key.partition(".")
+    masked = bool(values.get("ingest.load_masks", True))
     if section == "meshing" and name in evaluation.CROP_KEYS:
-        return evaluation.crops_to_object(values.get("meshing.crop_to_object", "auto"),
-                                          bool(values.get("ingest.load_masks", True)))
+        return evaluation.crops_to_object(values.get("meshing.crop_to_object", "auto"), masked)
+    if (section == "surface" and name.startswith("photo_mask")) or key == "loss.w_photo_mask":
+        return not masked  # the surface makes masks from the photos only where the layout's are not loaded
     return True
 
 

@@ -214,8 +214,9 @@ def test_the_project_speaks_of_itself_by_date():
 
 
 def test_a_default_no_run_of_a_bench_reads_leaves_its_figures_shown():
-    """The crop to the object's keys are read only where the surface is cropped (no masks): changed, they
-    stale the photos-alone runs of a bench, not its masked ones; and only the presets a bench ran count."""
+    """The crop to the object's keys are read only where the surface is cropped (no masks), the photo masks' only
+    without the layout's masks: changed, they stale the photos-alone runs of a bench, not its masked ones; and
+    only the presets a bench ran count."""
     import json
 
     from bench import bench_refine
@@ -233,3 +234,47 @@ def test_a_default_no_run_of_a_bench_reads_leaves_its_figures_shown():
     # a masked run told to crop reads them
     then["resolved_params"]["default"]["meshing.crop_to_object"] = "on"
     assert "meshing.silhouette_dilation" in results_md.changed_defaults(then, bench_refine.PRESETS)
+    # the masks made from the photos: read only where the layout's are not loaded
+    for preset in then["resolved_params"].values():
+        preset["surface.photo_mask_vote"] += 0.05
+    assert "surface.photo_mask_vote (photos-alone)" in results_md.changed_defaults(then)
+    assert "surface.photo_mask_vote" not in results_md.changed_defaults(then, bench_refine.PRESETS)
+
+
+def test_a_later_bench_of_some_systems_replaces_their_rows(tmp_path):
+    """`make bench ARGS="--systems photos-alone"` after a full bench: README shows the full bench with those
+    rows, their seeds and targets from the later file, and says so; an earlier one, one on other seeds and one
+    measured with other parameters than the checkout's do not pass as today's figures."""
+    import json
+
+    full = json.loads((ROOT / "bench/scan24/2026-11-28.json").read_text())
+    (tmp_path / "scan24").mkdir()
+    (tmp_path / "scan24" / "2026-11-28.json").write_text(json.dumps(full))
+
+    def subset(name: str, date: str, chamfer: float, seeds=(0, 1, 2)) -> dict:
+        sub = json.loads(json.dumps(full))
+        sub.update(date=date, seeds=list(seeds), systems={"photos-alone": sub["systems"]["photos-alone"]},
+                   per_seed={s: {"photos-alone": {**r["photos-alone"], "chamfer_units": chamfer}}
+                             for s, r in sub["per_seed"].items()})
+        sub["systems"]["photos-alone"]["chamfer_units"] = chamfer
+        (tmp_path / "scan24" / name).write_text(json.dumps(sub))
+        return sub
+
+    before = results_md.results_markdown(tmp_path, tmp_path)
+    assert "photos alone's Chamfer <= 1.3 x the calibrated masked run's: MISSED" in before
+    subset("2026-11-27-photos-alone.json", "2026-11-27T09:00:00", 0.5)   # older than the full bench
+    subset("2026-11-29-photos-alone-two-seeds.json", "2026-11-29T08:00:00", 0.5, seeds=(0, 1))
+    assert results_md.results_markdown(tmp_path, tmp_path) == before
+    sub = subset("2026-11-29-photos-alone.json", "2026-11-29T09:00:00", 1.25)
+    text = results_md.results_markdown(tmp_path, tmp_path)
+    assert "photos alone's Chamfer <= 1.3 x the calibrated masked run's: met (seed 0 1.25 vs" in text
+    assert ("its ManifoldNeuS, photos alone rows measured again 2026-11-29 09:00:00 "
+            "(`scan24/2026-11-29-photos-alone.json` with `--set run.threads=1`)") in text
+    row = next(line for line in text.splitlines() if "| ManifoldNeuS, photos alone |" in line)
+    assert "| 1.25 ±" in row
+    assert text.count("| scan24 | ManifoldNeuS |") == 1  # the masked rows stay the full bench's
+    # measured with a value the checkout no longer resolves to: the scene is not shown as today's
+    sub["resolved_params"]["photos-alone"]["surface.photo_mask_vote"] = 0.5
+    (tmp_path / "scan24" / "2026-11-29-photos-alone.json").write_text(json.dumps(sub))
+    stale = results_md.results_markdown(tmp_path, tmp_path)
+    assert "surface.photo_mask_vote (photos-alone)" in stale and "| scan24 |" not in stale
