@@ -80,8 +80,7 @@ def with_remeasured(result: dict, scene_dir: Path) -> dict:
             for seed, systems in sub.get("per_seed", {}).items():
                 merged["per_seed"][seed][key] = systems[key]
             merged["resolved_params"][preset] = sub["resolved_params"][preset]
-            remeasured[key] = {"file": path.name, "date": sub["date"], "overrides": sub.get("overrides", []),
-                               "commit": sub.get("commit")}
+            remeasured[key] = {"file": path.name, "date": sub["date"], "overrides": sub.get("overrides", [])}
     bench.add_ratios(merged["systems"])
     merged["targets"] = bench.targets(merged)
     return merged
