@@ -51,16 +51,10 @@ class Params:
                               "outside its region background), let the views vote on them, and train the field "
                               "towards them (loss.w_photo_mask) where a view's mask and the vote agree")
     photo_mask_band: int = param(25, "photo_masks: how far (pixels of the ingest's images) beyond the convex hull of "
-                                 "the object's SfM points, and around the points neither the object's nor the "
-                                 "background's (too few views see them), GrabCut may extend the object: its "
-                                 "textureless parts that no point reaches", lo=1)
+                                 "the object's SfM points GrabCut may extend the object: its textureless parts that "
+                                 "no point reaches", lo=1)
     photo_mask_support: float = param(0.02, "photo_masks: SfM points less than this (of the object region's radius) "
                                       "above its support plane are the support's, background seeds", lo=0.0)
-    photo_mask_far: float = param(2.0, "photo_masks: SfM points farther than this many object-region radii from its "
-                                  "centre are background seeds. The region's ball holds the points most views see; "
-                                  "the parts fewer views see reach beyond it (scan24's tower: up to 1.5 radii), and "
-                                  "at 1 radius GrabCut cut them off (the masks' IoU with the layout's 0.964 against "
-                                  "0.985 on scan24, 0.974 against 0.987 on scan24_idr)", lo=1.0)
     photo_mask_vote: float = param(0.9, "photo_masks: the share of the views holding a point in their frame that "
                                    "must have it inside their mask for the vote to keep it", lo=0.5, hi=1.0)
     photo_mask_fill: bool = param(False, "photo_masks: also train towards the object where a view's mask and the vote "
@@ -156,7 +150,7 @@ def photo_labels(ctx, views, result: dict, ids: np.ndarray) -> np.ndarray:
     # fitted to their few views' points, can lie a few % of the radius off them
     region, obj = object_region.locate(result["track_points"], views.K[ids], w2c[ids], sizes[ids], min_seen)
     masks = segmentation.object_masks(views.images, sizes, views.K, w2c, ids, result, region, min_seen,
-                                      p.photo_mask_support, p.photo_mask_band, p.photo_mask_far,
+                                      p.photo_mask_support, p.photo_mask_band,
                                       progress=lambda it: ctx.progress(it, desc="masks from the photos"))  # [V,H,W]
     voted = segmentation.vote_masks(masks, views.K[ids], w2c[ids], sizes[ids], result["track_points"][obj],
                                     agree=p.photo_mask_vote)

@@ -7,11 +7,10 @@ background by colour, once told roughly where each is; the tracks of the final r
 
 * a point the views' common frustum holds, inside the object's region and above its support, is the
   object's: a small disk of sure foreground where each view observed it;
-* a point on or below the support plane, or far outside the region's ball, is background: a disk of sure
+* a point on or below the support plane, or outside the region's ball, is background: a disk of sure
   background where each view observed it (a white skull on a white table is told apart by these);
-* the convex hull of the object's points is probable foreground, and so is a disk around each observation of
-  the points neither rule decides (parts that fewer views see, which reach beyond the ball: scan24's clock
-  tower and wing ends); a band around both is probable background, the rest of the image sure background.
+* the convex hull of the object's points is probable foreground, a band around it probable background,
+  the rest of the image sure background.
 
 Only observed pixels become seeds, so a point the object hides from a view seeds nothing there.
 
@@ -35,36 +34,31 @@ BACKGROUND_SEED_PX = 3
 
 
 def classify_points(points: np.ndarray, seen: np.ndarray, region: ObjectRegion | None, min_seen: float,
-                    support_margin: float, far: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+                    support_margin: float) -> tuple[np.ndarray, np.ndarray]:
     """(object [P] bool, background [P] bool) of the points [P,3] that the fraction ``seen`` [P] of the views
     hold in their frame: object = seen by ``min_seen`` of the views, inside the region and more than
-    ``support_margin`` (of the region's radius) above its support plane; background = farther than ``far``
-    region radii from its centre, or on or below that margin above the plane. The ball holds the points most
-    views see, and the object's parts fewer views see reach beyond it (scan24: up to 1.5 radii, none of them
-    background), hence ``far``. Without a region, no point is background."""
+    ``support_margin`` (of the region's radius) above its support plane; background = outside the region's
+    ball, or on or below that margin above the plane. Without a region, no point is background."""
     obj = seen >= min_seen
     if region is None:
         return obj, np.zeros(len(points), bool)
     margin = support_margin * region.radius
     obj &= region.contains(points, margin)
-    background = np.linalg.norm(np.asarray(points) - np.asarray(region.centre), axis=1) > far * region.radius
+    background = ~region.contains(points, None)
     if region.plane is not None:
         background |= np.asarray(points) @ np.asarray(region.plane[:3]) + region.plane[3] <= margin
     return obj & ~background, background
 
 
 def grabcut_mask(image: np.ndarray, hull: np.ndarray, foreground_uv: np.ndarray, background_uv: np.ndarray,
-                 band: int, iters: int = 5, seed: int = 0, probable_uv: np.ndarray | None = None) -> np.ndarray:
-    """bool [H,W]: GrabCut of the image [H,W,3] uint8 started from the hull [H,W] bool and ``band``-pixel disks
-    at the pixels probable_uv [Q,2] (x, y) (probable foreground), a ``band``-pixel ring around them (probable
-    background), the rest background, and seed disks at the pixels foreground_uv [F,2] / background_uv [B,2].
-    All background when the hull is empty."""
+                 band: int, iters: int = 5, seed: int = 0) -> np.ndarray:
+    """bool [H,W]: GrabCut of the image [H,W,3] uint8 started from the hull [H,W] bool (probable foreground), a
+    ``band``-pixel ring around it (probable background), the rest background, and seed disks at the pixels
+    foreground_uv [F,2] / background_uv [B,2] (x, y). All background when the hull is empty."""
     H, W = hull.shape
     if not hull.any():
         return np.zeros((H, W), bool)
     h = hull.astype(np.uint8)
-    for x, y in np.round(probable_uv if probable_uv is not None else np.zeros((0, 2))).astype(int):
-        cv2.circle(h, (int(x), int(y)), band, 1, -1)
     ring = cv2.dilate(h, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1)))
     trimap = np.full((H, W), cv2.GC_BGD, np.uint8)
     trimap[ring > 0] = cv2.GC_PR_BGD
@@ -95,16 +89,14 @@ def convex_hull_mask(points: np.ndarray, K: np.ndarray, w2c: np.ndarray, hw) -> 
 
 def object_masks(images: np.ndarray, sizes: np.ndarray, K: np.ndarray, w2c: np.ndarray, ids: np.ndarray,
                  tracks: dict, region: ObjectRegion | None, min_seen: float, support_margin: float, band: int,
-                 far: float = 2.0, progress=iter) -> np.ndarray:
+                 progress=iter) -> np.ndarray:
     """bool [len(ids),H,W]: the object's mask in each view ``ids`` of images [N,H,W,3] uint8 (each view's own
     part sizes [N,2] (H, W) of the canvas; False beyond it), posed by K [N,3,3], w2c [N,4,4], from the round's
     ``tracks``: ``track_points`` [P,3] (w2c's frame), ``track_obs_view`` / ``track_obs_point`` [O] and
-    ``track_obs_uv`` [O,2] px; ``band``, ``far`` as in :func:`grabcut_mask`, :func:`classify_points`.
-    ``progress`` wraps the loop over the views (a progress bar)."""
+    ``track_obs_uv`` [O,2] px. ``progress`` wraps the loop over the views (a progress bar)."""
     points = tracks["track_points"]
     seen = seen_fraction(points, K[ids], w2c[ids], sizes[ids])
-    obj, background = classify_points(points, seen, region, min_seen, support_margin, far)
-    undecided = ~obj & ~background
+    obj, background = classify_points(points, seen, region, min_seen, support_margin)
     view, point, uv = tracks["track_obs_view"], tracks["track_obs_point"], tracks["track_obs_uv"]
     masks = np.zeros((len(ids), *images.shape[1:3]), bool)
     for j in progress(range(len(ids))):
@@ -112,8 +104,7 @@ def object_masks(images: np.ndarray, sizes: np.ndarray, K: np.ndarray, w2c: np.n
         h, w = sizes[i]
         here = view == i
         masks[j, :h, :w] = grabcut_mask(images[i, :h, :w, :3], convex_hull_mask(points[obj], K[i], w2c[i], (h, w)),
-                                         uv[here & obj[point]], uv[here & background[point]], band, seed=int(i),
-                                         probable_uv=uv[here & undecided[point]])
+                                         uv[here & obj[point]], uv[here & background[point]], band, seed=int(i))
     return masks
 
 
