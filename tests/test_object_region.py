@@ -185,9 +185,9 @@ def test_an_unmasked_capture_on_a_floor_finds_the_object_and_the_mesh_keeps_to_i
     # part of them as well as away from the background's
     surface_dir = store.version_dir("surface", store.current("surface"))
     assert io.load_arrays(surface_dir / artifacts.PHOTO_MASKS)["views"].tolist() == used.tolist()
-    made = io.load_json(surface_dir / "manifest.json")["metrics"]
+    made = store.manifest("surface")["metrics"]
     assert made["photo_mask_object"] > 0.05 and made["photo_mask_background"] > 0.05
-    assert io.load_json(surface_dir / "round.json")["train"]["loss_status"]["photo_mask"] == "on"
+    assert io.load_json(surface_dir / artifacts.ROUND_META)["train"]["loss_status"]["photo_mask"] == "on"
     mesh = trimesh.load(store.version_dir("mesh", store.current("mesh")) / "mesh.ply", process=False)
     if len(mesh.faces):
         V = np.asarray(mesh.vertices)
