@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -74,6 +74,11 @@ class Params:
                                          "(loss.w_free_space, as without photo masks); off, the carved background "
                                          "does their work: Chamfer scan24_idr 3.12 mm without them against 3.92 "
                                          "with them (three seeds), scan65_idr 1.56 against 1.42 (seed 0)")
+    unmasked_dir_bands: int = param(0, "Without the layout's masks: the Fourier bands of the surface field's "
+                                    "view-direction encoding (field.dir_bands elsewhere; -1 = that too). Every view's "
+                                    "outline holds a membrane across a concavity, and colour that turns quickly with "
+                                    "the view lets it show what lies behind it: photos alone, three seeds, 0 against "
+                                    "4: see docs/EXPERIMENTS.md", lo=-1, hi=10)
     extent_radius: float = param(0.6, "Without masks (frame = views), the field's frame is scaled down until the "
                                  "object's whole extent (the 99th percentile of the distances of the SfM points in "
                                  "the anchors' object region that extent_min_seen of the views see) lies within this "
@@ -204,7 +209,10 @@ def run(ctx) -> None:
     ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
     ckpt = ctx.checkpoint_dir / artifacts.MODEL
     lp = ctx.section("loss")
-    trainer = Trainer(views.subset(ids, w2c), ctx.section("field"), ctx.section("render"), lp,
+    field_p = ctx.section("field")
+    if views.masks is None and p.unmasked_dir_bands >= 0:
+        field_p = replace(field_p, dir_bands=p.unmasked_dir_bands)
+    trainer = Trainer(views.subset(ids, w2c), field_p, ctx.section("render"), lp,
                       ctx.section("train"), run=trun, checkpoint_path=ckpt)
     sight_lines = views.object_labels is None or p.photo_mask_sight_lines
     if lp.w_free_space > 0 and views.masks is None and sight_lines:  # no surface along the SfM lines of sight
