@@ -5,8 +5,10 @@ The rounds fit their field on growing subsets of the views while the poses move:
 views formed stays in it (docs/REFINEMENT.md). Once the poses are decided, a field trained on all views
 at once (``surface.start = fresh``: a new field, its grid box fitted to every view's visual hull or
 common frustum) gives the surface NeuS gives on the same poses. Without masks its frame is scaled down to
-hold the object's whole extent well inside the sphere (``surface.extent_radius``), and it can make masks of its
-own from the photos and the last round's SfM tracks (``surface.photo_masks``,
+hold the object's whole extent well inside the sphere (``surface.extent_radius``), its colour takes the view
+direction without Fourier bands (``surface.unmasked_dir_bands``: a membrane across a concavity, which every outline
+holds, shows what lies behind it only through colour that turns quickly with the view), and it can make masks of
+its own from the photos and the last round's SfM tracks (``surface.photo_masks``,
 :mod:`manifoldneus.geometry.segmentation`), which the field then follows where the views agree. Writes the same
 files as a round (:func:`manifoldneus.posefree.save_round`'s layout): ``poses.zarr`` (the last round's,
 unchanged), ``model.pt``, ``round.json`` (this training's summary), and where it made masks ``photo_masks.zarr``

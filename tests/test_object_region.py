@@ -481,11 +481,13 @@ def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_flo
         assert (labels != 0.5).mean() > 0.6
         status = io.load_json(surface_dir / "round.json")["train"]["loss_status"]
         assert status["photo_mask"] == "on" and "free_space" not in status and status["mask"].startswith("off")
-        # without masks the surface's colour takes the view direction without Fourier bands; the rounds keep theirs
-        bands = {d: torch.load(d / artifacts.MODEL, weights_only=False)["params"]["field"]["dir_bands"]
-                 for d in (surface_dir, store.version_dir("successors", store.current("successors")) / "final")}
-        assert sorted(bands.values()) == [0, runner.resolve_params(runner.load_stages(), overrides=ON_A_FLOOR)[
-            "field"].dir_bands]
+        # without masks the surface's colour takes the view direction with surface.unmasked_dir_bands; the rounds
+        # keep the field's
+        params = runner.resolve_params(runner.load_stages(), overrides=ON_A_FLOOR)
+        asked, own = params["surface"].unmasked_dir_bands, params["field"].dir_bands
+        bands = [torch.load(d / artifacts.MODEL, weights_only=False)["params"]["field"]["dir_bands"]
+                 for d in (surface_dir, store.version_dir("successors", store.current("successors")) / "final")]
+        assert bands == [own if asked < 0 else asked, own]
         # what the mesh stage culls to in place of the points' hulls: all but the carved background; a view the
         # stage made no mask for keeps everything
         carved = segmentation.object_labels(made["masks"], made["voted"], 2, fill=True) == 0
