@@ -481,13 +481,6 @@ def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_flo
         assert (labels != 0.5).mean() > 0.6
         status = io.load_json(surface_dir / "round.json")["train"]["loss_status"]
         assert status["photo_mask"] == "on" and "free_space" not in status and status["mask"].startswith("off")
-        # without masks the surface's colour takes the view direction with surface.unmasked_dir_bands; the rounds
-        # keep the field's
-        params = runner.resolve_params(runner.load_stages(), overrides=ON_A_FLOOR)
-        asked, own = params["surface"].unmasked_dir_bands, params["field"].dir_bands
-        bands = [torch.load(d / artifacts.MODEL, weights_only=False)["params"]["field"]["dir_bands"]
-                 for d in (surface_dir, store.version_dir("successors", store.current("successors")) / "final")]
-        assert bands == [own if asked < 0 else asked, own]
         # what the mesh stage culls to in place of the points' hulls: all but the carved background; a view the
         # stage made no mask for keeps everything
         carved = segmentation.object_labels(made["masks"], made["voted"], 2, fill=True) == 0
@@ -499,8 +492,14 @@ def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_flo
         monkeypatch.setattr(surface_stage, "photo_labels", lambda ctx, views, result, ids: np.full(
             (views.n, *views.images.shape[1:3]), 0.5, np.float32))
         asked = runner.run("synthetic", until="surface", artifacts=store.scene_dir.parent, overrides=[
-            *ON_A_FLOOR, "surface.photo_masks=true", "surface.photo_mask_sight_lines=true", "surface.iters=2"])
+            *ON_A_FLOOR, "surface.photo_masks=true", "surface.photo_mask_sight_lines=true", "surface.iters=2",
+            "surface.unmasked_dir_bands=1"])
         asked_dir = store.version_dir("surface", asked.fingerprints["surface"])
+        # the view-direction bands asked for without masks (the default keeps the field's, as the rounds do)
+        own = runner.resolve_params(runner.load_stages(), overrides=ON_A_FLOOR)["field"].dir_bands
+        bands = [torch.load(d / artifacts.MODEL, weights_only=False)["params"]["field"]["dir_bands"] for d in (
+            asked_dir, surface_dir, store.version_dir("successors", store.current("successors")) / "final")]
+        assert bands == [1, own, own] and own != 1
         status = io.load_json(asked_dir / "round.json")["train"]
         assert status["loss_status"]["photo_mask"] == status["loss_status"]["free_space"] == "on"
         assert artifacts.load_photo_silhouettes(asked_dir, used, 2) is None  # it made no masks of its own
