@@ -498,7 +498,7 @@ def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_flo
         # the view-direction bands asked for without masks (the default keeps the field's, as the rounds do)
         own = runner.resolve_params(runner.load_stages(), overrides=ON_A_FLOOR)["field"].dir_bands
         bands = [torch.load(d / artifacts.MODEL, weights_only=False)["params"]["field"]["dir_bands"] for d in (
-            asked_dir, surface_dir, store.version_dir("successors", store.current("successors")) / "final")]
+            asked_dir, surface_dir, store.version_dir("successors", store.current("successors")) / artifacts.FINAL_ROUND)]
         assert bands == [1, own, own] and own != 1
         status = io.load_json(asked_dir / "round.json")["train"]
         assert status["loss_status"]["photo_mask"] == status["loss_status"]["free_space"] == "on"
