@@ -5,7 +5,7 @@ The rounds fit their field on growing subsets of the views while the poses move:
 views formed stays in it (docs/REFINEMENT.md). Once the poses are decided, a field trained on all views
 at once (``surface.start = fresh``: a new field, its grid box fitted to every view's visual hull or
 common frustum) gives the surface NeuS gives on the same poses. Without masks its frame is scaled down to
-hold the object's whole extent well inside the sphere (``surface.extent_radius``), its colour may turn more slowly
+hold the object's whole extent well inside the sphere (``surface.extent_radius``), its colour turns more slowly
 with the view (``surface.unmasked_dir_bands``: a membrane across a concavity, which every outline holds, shows what
 lies behind it only through colour that turns quickly with the view), and it can make masks of its own from the
 photos and the last round's SfM tracks (``surface.photo_masks``,
@@ -76,14 +76,15 @@ class Params:
                                          "(loss.w_free_space, as without photo masks); off, the carved background "
                                          "does their work: Chamfer scan24_idr 3.12 mm without them against 3.92 "
                                          "with them (three seeds), scan65_idr 1.56 against 1.42 (seed 0)")
-    unmasked_dir_bands: int = param(-1, "Without the layout's masks: the Fourier bands of the surface field's "
+    unmasked_dir_bands: int = param(0, "Without the layout's masks: the Fourier bands of the surface field's "
                                     "view-direction encoding (-1: field.dir_bands, as with masks). Fewer bands keep "
                                     "membranes off concavities, which every outline holds and which show what lies "
                                     "behind them only through colour that turns quickly with the view, but fit "
-                                    "DTU's lights, which move with the camera, worse. Photos alone, Chamfer seeds 0 / "
-                                    "1 at 0 against 4 bands: scan24 1.81 / 1.74 mm against 1.82 / 2.17, scan65_idr "
-                                    "1.48 / 1.43 against 1.57 / 1.43, synthetic 0.0128 / 0.0118 against 0.0146 / "
-                                    "0.0118, scan24_idr 3.03 / 3.13 against 2.68 / 2.85", lo=-1, hi=10)
+                                    "DTU's lights, which move with the camera, worse. Photos alone, Chamfer of "
+                                    "seeds 0 / 1 / 2 at 0 against 4 bands: scan24 1.81 / 1.74 / 1.81 mm against "
+                                    "1.82 / 2.17 / 1.99, scan65_idr 1.48 / 1.43 / 1.44 against 1.57 / 1.43 / 1.47, "
+                                    "synthetic 0.0128 / 0.0118 / 0.0118 against 0.0146 / 0.0118 / 0.0122, "
+                                    "scan24_idr 3.03 / 3.13 / 2.77 against 2.68 / 2.85 / 2.87", lo=-1, hi=10)
     extent_radius: float = param(0.6, "Without masks (frame = views), the field's frame is scaled down until the "
                                  "object's whole extent (the 99th percentile of the distances of the SfM points in "
                                  "the anchors' object region that extent_min_seen of the views see) lies within this "
