@@ -85,6 +85,10 @@ class Params:
                                     "1.82 / 2.17 / 1.99, scan65_idr 1.48 / 1.43 / 1.44 against 1.57 / 1.43 / 1.47, "
                                     "synthetic 0.0128 / 0.0118 / 0.0118 against 0.0146 / 0.0118 / 0.0122, "
                                     "scan24_idr 3.03 / 3.13 / 2.77 against 2.68 / 2.85 / 2.87", lo=-1, hi=10)
+    unmasked_view_cosine: bool = param(False, "Without the layout's masks: the surface field's colour also reads the "
+                                       "cosine between the view and the surface's normal (field.view_cosine), the "
+                                       "shading of a light that moves with the camera, which no view-direction "
+                                       "band is left to fit (unmasked_dir_bands)")
     extent_radius: float = param(0.6, "Without masks (frame = views), the field's frame is scaled down until the "
                                  "object's whole extent (the 99th percentile of the distances of the SfM points in "
                                  "the anchors' object region that extent_min_seen of the views see) lies within this "
@@ -218,6 +222,8 @@ def run(ctx) -> None:
     field_p = ctx.section("field")
     if views.masks is None and p.unmasked_dir_bands >= 0:
         field_p = replace(field_p, dir_bands=p.unmasked_dir_bands)
+    if views.masks is None and p.unmasked_view_cosine:
+        field_p = replace(field_p, view_cosine=True)
     trainer = Trainer(views.subset(ids, w2c), field_p, ctx.section("render"), lp,
                       ctx.section("train"), run=trun, checkpoint_path=ckpt)
     sight_lines = views.object_labels is None or p.photo_mask_sight_lines

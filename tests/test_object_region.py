@@ -493,13 +493,14 @@ def test_masks_from_the_photos_label_the_object_and_leave_the_floor_out(on_a_flo
             (views.n, *views.images.shape[1:3]), 0.5, np.float32))
         asked = runner.run("synthetic", until="surface", artifacts=store.scene_dir.parent, overrides=[
             *ON_A_FLOOR, "surface.photo_masks=true", "surface.photo_mask_sight_lines=true", "surface.iters=2",
-            "surface.unmasked_dir_bands=1"])
+            "surface.unmasked_dir_bands=1", "surface.unmasked_view_cosine=true"])
         asked_dir = store.version_dir("surface", asked.fingerprints["surface"])
-        # the view-direction bands without masks: asked for, the default's (none), the rounds' (the field's own)
+        # the view-direction bands and cosine without masks: asked for, the default's, the rounds' (the field's own)
         own = runner.resolve_params(runner.load_stages(), overrides=ON_A_FLOOR)["field"].dir_bands
-        bands = [torch.load(d / artifacts.MODEL, weights_only=False)["params"]["field"]["dir_bands"] for d in (
+        saved = [torch.load(d / artifacts.MODEL, weights_only=False)["params"]["field"] for d in (
             asked_dir, surface_dir, store.version_dir("successors", store.current("successors")) / artifacts.FINAL_ROUND)]
-        assert bands == [1, 0, own] and own > 1
+        assert [f["dir_bands"] for f in saved] == [1, 0, own] and own > 1
+        assert [f["view_cosine"] for f in saved] == [True, False, False]
         status = io.load_json(asked_dir / "round.json")["train"]
         assert status["loss_status"]["photo_mask"] == status["loss_status"]["free_space"] == "on"
         assert artifacts.load_photo_silhouettes(asked_dir, used, 2) is None  # it made no masks of its own

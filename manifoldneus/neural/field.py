@@ -41,6 +41,10 @@ class FieldParams:
     init_variance: float = param(0.3, "Initial NeuS variance parameter v (inv_s = exp(10 v))", lo=-1.0, hi=1.0)
     feature_dim: int = param(15, "Geometry feature passed from the SDF network to the colour network", lo=1)
     dir_bands: int = param(4, "Fourier bands of the view-direction encoding", lo=0, hi=10)
+    view_cosine: bool = param(False, "grid: the colour decoder also reads the cosine between the view direction and "
+                              "the SDF's normal where the ray meets the surface (the shading under a light that "
+                              "moves with the camera, as DTU's, with no bands of the view direction; 0 without "
+                              "importance samples, which estimate that point)")
     gradient_mode: str = param("auto", "SDF gradients: 'analytic' (autograd), 'fd' (tetrahedral finite differences) or 'auto'",
                                choices=["auto", "analytic", "fd"])
     fd_eps: float = param(0.0, "Finite-difference step (scene units); 0 = half the finest grid cell (grid) or 1e-3 (mlp)",
@@ -107,7 +111,8 @@ class FieldBase(nn.Module):
     """Common interface. Subclasses implement ``_sdf_feat`` and ``_color``."""
 
     n_bands: int = 0
-    color_uses_normal: bool = False
+    color_uses_normal: bool = False  # per-sample normals [N,3]
+    color_uses_ray_normal: bool = False  # the normal where each sample's ray meets the surface [N,3]
 
     def __init__(self, p: FieldParams):
         super().__init__()
@@ -127,7 +132,7 @@ class FieldBase(nn.Module):
 
     def forward(self, x, dirs, band_weights=None, normals=None):
         """(sdf [N], rgb [N,3] in [0,1]) at points x [N,3] seen along unit dirs [N,3].
-        ``normals`` [N,3] is required when ``color_uses_normal``."""
+        ``normals`` [N,3] is required when ``color_uses_normal`` or ``color_uses_ray_normal``."""
         sdf, feat = self._sdf_feat(x, band_weights)
         return sdf, self._color(x, dirs, feat, normals)
 
@@ -303,7 +308,8 @@ class GridField(FieldBase):
         self.sdf_layers = nn.ModuleList(layers)
         d_dir = 3 + 6 * p.dir_bands
         cl = []
-        d = p.feature_dim + d_dir + C * p.grid_levels
+        self.color_uses_ray_normal = p.view_cosine
+        d = p.feature_dim + d_dir + C * p.grid_levels + int(p.view_cosine)
         for _ in range(p.color_decoder_depth):
             cl.append(nn.Linear(d, p.decoder_width))
             d = p.decoder_width
@@ -344,7 +350,10 @@ class GridField(FieldBase):
         return sdf, torch.cat([h[:, 1:], gf], -1)
 
     def _color(self, x, dirs, feat, normals):
-        h = torch.cat([feat, fourier_encode(dirs, self.p.dir_bands)], -1)
+        h = [feat, fourier_encode(dirs, self.p.dir_bands)]
+        if self.color_uses_ray_normal:
+            h.append(-(normals * dirs).sum(-1, keepdim=True))  # [N,1]: 1 facing the camera
+        h = torch.cat(h, -1)
         for li, lin in enumerate(self.color_layers):
             h = lin(h)
             if li < len(self.color_layers) - 1:

@@ -15,8 +15,9 @@ Sample placement (``RenderParams.sampler``):
   ``up_steps`` rounds with s = 64 * 2^i adding ``n_importance / up_steps`` samples each).
 
 Normals: the field's colour network may need per-sample normals (``mlp``); then the rendered normal
-is sum_i w_i n_i. Otherwise the normal is the SDF gradient at the ray's expected surface point
-o + d * depth / opacity (one gradient per ray; finite differences or autograd).
+is sum_i w_i n_i. Otherwise the normal is the SDF gradient at the ray's surface point estimated by the
+sampling (or, without one, at o + d * depth / opacity): one gradient per ray, finite differences or
+autograd, which a ``grid`` field with ``view_cosine`` reads in its colour at every sample of the ray.
 Eikonal: gradients at a random subset of the samples and at uniform points in the sphere.
 """
 from __future__ import annotations
@@ -336,7 +337,8 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
     def ones(n):
         return None if band_weights is None else band_weights.new_ones(n, L)
 
-    if want_normals and t_surf is not None:
+    ray_normal = field.color_uses_ray_normal
+    if (want_normals or ray_normal) and t_surf is not None:
         t_s = torch.minimum(torch.maximum(t_surf, near), far)
         x_surf = o.detach() + t_s[:, None] * d.detach()
         pts_n, k, fin_n = field.gradient_points(x_surf, create_graph=need_grad)
@@ -365,13 +367,20 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
         bw_all = None if band_weights is None else torch.cat(bws)
         sdf_all, feat_all = field._sdf_feat(x_all, bw_all)
         sdf = scatter(sdf_all[:n_eval], sdf_base).reshape(R, S)
-        rgb = _colour_where_weighted(field, sdf, x_eval, dirs if keep is None else dirs[keep], feat_all[:n_eval],
-                                     None, keep, p).reshape(R, S, 3)
         off = n_eval
         for (name, fin), size in zip(finishers, sizes[1:]):
             g, _ = fin(sdf_all[off:off + size])
             out[name] = g if name == "eik_grad" else F.normalize(g, dim=-1)
             off += size
+        normals_e = None
+        if ray_normal:
+            n_ray = out["normal"] if "normal" in out else d.new_zeros(R, 3)  # [R,3]
+            normals_e = n_ray[:, None].expand(R, S, 3).reshape(-1, 3)  # [R*S,3]
+            normals_e = normals_e if keep is None else normals_e[keep]
+            if not want_normals:
+                out.pop("normal", None)
+        rgb = _colour_where_weighted(field, sdf, x_eval, dirs if keep is None else dirs[keep], feat_all[:n_eval],
+                                     normals_e, keep, p).reshape(R, S, 3)
     w, out = _composite(field, sdf, rgb, t, hit, o, d, background, out, perturb)
     if want_normals and "normal" not in out:
         # no sampling-based surface estimate: gradient at the rendered depth (second call)
