@@ -88,11 +88,10 @@ class Params:
     unmasked_view_cosine: bool = param(False, "Without the layout's masks: the surface field's colour also reads the "
                                        "cosine between the view and the surface's normal (field.view_cosine), the "
                                        "shading of a light that moves with the camera, which no view-direction "
-                                       "band is left to fit (unmasked_dir_bands). Photos alone, Chamfer of "
-                                       "seeds 0 / 1 / 2 with it against without: scan24_idr 2.90 / 2.81 / 2.88 mm "
-                                       "against 3.03 / 3.13 / 2.77, scan24 1.85 / 1.87 / 2.05 against 1.81 / 1.74 / "
-                                       "1.81, scan65_idr 1.58 / 1.48 / 1.44 against 1.48 / 1.43 / 1.44, synthetic "
-                                       "0.0150 / 0.0118 / 0.0119 against 0.0128 / 0.0118 / 0.0118")
+                                       "band is left to fit (unmasked_dir_bands). Photos alone, Chamfer with it "
+                                       "against without, the two seeds that miss their limits with one or the "
+                                       "other: scan24 seed 2 1.77 mm against 1.81, scan24_idr seed 1 2.90 against "
+                                       "3.13 (the other seeds: docs/EXPERIMENTS.md)")
     extent_radius: float = param(0.6, "Without masks (frame = views), the field's frame is scaled down until the "
                                  "object's whole extent (the 99th percentile of the distances of the SfM points in "
                                  "the anchors' object region that extent_min_seen of the views see) lies within this "

@@ -533,6 +533,12 @@ def test_a_view_cosine_colour_shades_a_sphere_brighter_where_it_faces_the_camera
     inner, rim = grey[hit & (radius_px < 3)].mean(), grey[hit & (radius_px > radius_px[hit].max() - 2)].mean()
     assert inner > 0.95 and rim < inner - 0.1, (inner, rim)
     assert "normal" not in unasked and torch.equal(unasked["rgb"], shaded["rgb"])
+    # in training the rendered normal keeps its graph (normal losses), the colour's copy of it does not
+    seen = []
+    colour = field._color
+    field._color = lambda x, dirs, feat, normals: seen.append(normals) or colour(x, dirs, feat, normals)
+    trained = render_rays(field, o, d, rp, cache=cache, background=Background("black"), train=True)
+    assert trained["normal"].requires_grad and seen and not any(n.requires_grad for n in seen)
 
 
 def test_band_weights_interface():

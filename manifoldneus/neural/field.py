@@ -44,7 +44,8 @@ class FieldParams:
     view_cosine: bool = param(False, "grid: the colour decoder also reads the cosine between the view direction and "
                               "the SDF's normal where the ray meets the surface (the shading under a light that "
                               "moves with the camera, as DTU's, with no bands of the view direction; 0 without "
-                              "importance samples, which estimate that point)")
+                              "importance samples, which estimate that point). The colour's loss does not reach the "
+                              "SDF through that normal")
     gradient_mode: str = param("auto", "SDF gradients: 'analytic' (autograd), 'fd' (tetrahedral finite differences) or 'auto'",
                                choices=["auto", "analytic", "fd"])
     fd_eps: float = param(0.0, "Finite-difference step (scene units); 0 = half the finest grid cell (grid) or 1e-3 (mlp)",

@@ -374,7 +374,9 @@ def render_rays(field, o, d, p: RenderParams, *, cache: SDFCache | None = None, 
             off += size
         normals_e = None
         if ray_normal:
-            n_ray = out["normal"] if "normal" in out else d.new_zeros(R, 3)  # [R,3]
+            # detached: the colour reads the shading and leaves the surface's shape to the SDF (attached, scan24
+            # seed 2 photos alone: Chamfer 2.05 mm against 1.77)
+            n_ray = out["normal"].detach() if "normal" in out else d.new_zeros(R, 3)  # [R,3]
             normals_e = n_ray[:, None].expand(R, S, 3).reshape(-1, 3)  # [R*S,3]
             normals_e = normals_e if keep is None else normals_e[keep]
             if not want_normals:
